@@ -1,0 +1,3 @@
+"""rory-instrument: rewrites a ROS 2 node's source so it links against rory_runtime."""
+
+from __future__ import annotations

@@ -1,0 +1,355 @@
+"""Input errors: exact ``file:line:col: message`` on stderr, exit code 2, and no OUT.
+
+These run ``main`` in-process from a temporary directory, with relative paths, so that
+messages are the same on every machine.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from rory_instrument.cli import main
+from rory_instrument.config import Mark, load_keyvars, parse_keyvars
+from rory_instrument.errors import ConfigError
+
+INTEGRATOR = '''\
+import rclpy
+from rclpy.node import Node
+from std_msgs.msg import Int64
+
+
+class Integrator(Node):
+    """Sums numbers."""
+
+    def __init__(self):
+        super().__init__('integrator')
+        self.total = 0  # running sum
+        self.count = 0
+        self.history = []
+'''
+
+PLAIN = '''\
+class Integrator:
+    def __init__(self):
+        self.total = 0
+'''
+
+GOOD = '''\
+nodes:
+  - file: integrator.py
+    class: Integrator
+    vars: [total, count, history]
+'''
+
+
+@pytest.fixture
+def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A directory with src/integrator.py and src/plain.py, made the current directory."""
+    src = tmp_path / 'src'
+    src.mkdir()
+    (src / 'integrator.py').write_text(INTEGRATOR)
+    (src / 'plain.py').write_text(PLAIN)
+    (src / 'broken.py').write_text('import os\n\nclass Broken(Node)\n    pass\n')
+    (tmp_path / 'outside.py').write_text(INTEGRATOR)
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def fails_with(work: Path, capsys: pytest.CaptureFixture[str], keyvars: str | None,
+               message: str) -> None:
+    """Asserts that instrumenting src with ``keyvars`` prints exactly ``message``."""
+    if keyvars is not None:
+        (work / 'keyvars.yaml').write_text(keyvars)
+    code, out, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'out')
+    assert (code, out, err) == (2, '', message + '\n')
+    assert not (work / 'out').exists()
+    # Nothing else was left next to OUT either (no staging directory).
+    assert sorted(p.name for p in work.iterdir()) == sorted(
+        ['src', 'outside.py'] + (['keyvars.yaml'] if keyvars is not None else [])
+    )
+
+
+NODE = 'nodes:\n  - file: integrator.py\n    class: Integrator\n'
+
+CONFIG_ERRORS = [
+    ('not_yaml', 'nodes: [\n',
+     "keyvars.yaml:2:1: not valid YAML: while parsing a flow node expected the node "
+     "content, but found '<stream end>'"),
+    ('empty', '', "keyvars.yaml:1:1: expected a mapping with key 'nodes', got an empty file"),
+    ('top_not_mapping', '- integrator.py\n',
+     'keyvars.yaml:1:1: top level: expected a mapping with keys nodes'),
+    ('missing_nodes', '{}\n', "keyvars.yaml:1:1: top level: missing required key 'nodes'"),
+    ('unknown_top_key', 'node: []\n',
+     "keyvars.yaml:1:1: top level: unknown key 'node' (expected: nodes)"),
+    ('nodes_not_list', 'nodes: integrator.py\n',
+     'keyvars.yaml:1:8: nodes: expected a non-empty list of node entries'),
+    ('nodes_empty', 'nodes: []\n',
+     'keyvars.yaml:1:8: nodes: expected a non-empty list of node entries'),
+    ('node_not_mapping', 'nodes:\n  - integrator.py\n',
+     'keyvars.yaml:2:5: nodes[0]: expected a mapping with keys file, class, vars, '
+     'checkpoint_interval, replay'),
+    ('missing_file', 'nodes:\n  - class: Integrator\n    vars: [total]\n',
+     "keyvars.yaml:2:5: nodes[0]: missing required key 'file'"),
+    ('missing_class', 'nodes:\n  - file: integrator.py\n    vars: [total]\n',
+     "keyvars.yaml:2:5: nodes[0]: missing required key 'class'"),
+    ('missing_vars', NODE, "keyvars.yaml:2:5: nodes[0]: missing required key 'vars'"),
+    ('vars_empty', NODE + '    vars: []\n',
+     'keyvars.yaml:4:11: nodes[0].vars: expected a non-empty list of attribute names'),
+    ('vars_not_list', NODE + '    vars: total\n',
+     'keyvars.yaml:4:11: nodes[0].vars: expected a non-empty list of attribute names'),
+    ('var_not_identifier', NODE + '    vars: [total, 2nd]\n',
+     "keyvars.yaml:4:19: nodes[0].vars[1]: '2nd' is not a Python identifier"),
+    ('var_keyword', NODE + '    vars:\n      - total\n      - class\n',
+     "keyvars.yaml:6:9: nodes[0].vars[1]: 'class' is not a Python identifier"),
+    ('var_not_scalar', NODE + '    vars: [total, {count: 1}]\n',
+     'keyvars.yaml:4:19: nodes[0].vars[1]: expected an attribute name'),
+    ('var_duplicate', NODE + '    vars: [total, count, total]\n',
+     "keyvars.yaml:4:26: nodes[0].vars[2]: duplicate var 'total'"),
+    ('unknown_node_key', NODE + '    var: [total]\n',
+     "keyvars.yaml:4:5: nodes[0]: unknown key 'var' (expected: file, class, vars, "
+     "checkpoint_interval, replay)"),
+    ('duplicate_key', NODE + '    vars: [total]\n    class: Other\n',
+     "keyvars.yaml:5:5: nodes[0]: duplicate key 'class'"),
+    ('duplicate_entry', NODE + '    vars: [total]\n'
+     '  - file: ./integrator.py\n    class: Integrator\n    vars: [count]\n',
+     'keyvars.yaml:5:5: nodes[1]: duplicate entry for integrator.py:Integrator '
+     '(first at line 2)'),
+    ('file_not_string', 'nodes:\n  - file: [integrator.py]\n    class: I\n    vars: [total]\n',
+     'keyvars.yaml:2:11: nodes[0].file: expected a path relative to SRC'),
+    ('class_not_a_name', 'nodes:\n  - file: integrator.py\n    class: 3D\n    vars: [total]\n',
+     "keyvars.yaml:3:12: nodes[0].class: '3D' is not a class name (use Outer.Inner if "
+     "nested)"),
+    ('interval_negative', NODE + '    vars: [total]\n    checkpoint_interval: -1\n',
+     "keyvars.yaml:5:26: nodes[0].checkpoint_interval: expected a positive number of "
+     "seconds, got '-1'"),
+    ('interval_quoted', NODE + '    vars: [total]\n    checkpoint_interval: "1"\n',
+     "keyvars.yaml:5:26: nodes[0].checkpoint_interval: expected a positive number of "
+     "seconds, got the string '1'"),
+    ('interval_infinite', NODE + '    vars: [total]\n    checkpoint_interval: .inf\n',
+     "keyvars.yaml:5:26: nodes[0].checkpoint_interval: expected a positive number of "
+     "seconds, got '.inf'"),
+    ('replay_unknown', NODE + '    vars: [total]\n    replay: slow\n',
+     "keyvars.yaml:5:13: nodes[0].replay: expected 'paced' or 'fast', got 'slow'"),
+]
+
+
+@pytest.mark.parametrize(('yaml_text', 'message'), [c[1:] for c in CONFIG_ERRORS],
+                         ids=[c[0] for c in CONFIG_ERRORS])
+def test_config_error(work: Path, capsys: pytest.CaptureFixture[str], yaml_text: str,
+                      message: str) -> None:
+    fails_with(work, capsys, yaml_text, message)
+
+
+def test_keyvars_unreadable(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    fails_with(work, capsys, None,
+               'keyvars.yaml:0:0: cannot read keyvars file: No such file or directory')
+
+
+SOURCE_ERRORS = [
+    ('file_missing', 'integratr.py', 'Integrator', '[total]',
+     "keyvars.yaml:2:11: file 'integratr.py' not found in SRC (src)"),
+    ('file_outside', '../outside.py', 'Integrator', '[total]',
+     "keyvars.yaml:2:11: file '../outside.py' is outside SRC (src)"),
+    ('file_absolute', '/etc/hostname', 'Integrator', '[total]',
+     "keyvars.yaml:2:11: file '/etc/hostname' must be relative to SRC"),
+    ('file_is_directory', '.', 'Integrator', '[total]',
+     "keyvars.yaml:2:11: file '.' is not a regular file"),
+    ('syntax_error', 'broken.py', 'Broken', '[x]',
+     "src/broken.py:3:19: syntax error: expected ':'"),
+    ('class_not_found', 'integrator.py', 'Integrater', '[total]',
+     "keyvars.yaml:3:12: class 'Integrater' not found in integrator.py; "
+     'classes there: Integrator'),
+    ('not_a_node', 'plain.py', 'Integrator', '[total]',
+     "src/plain.py:1:1: class 'Integrator' does not derive from rclpy.node.Node "
+     '(bases: none)'),
+    ('var_never_assigned', 'integrator.py', 'Integrator', '[total, count, histroy]',
+     'src/integrator.py:6:1: Integrator never assigns self.histroy '
+     '(vars: total, count, histroy)'),
+]
+
+
+@pytest.mark.parametrize(('file', 'class_name', 'vars', 'message'),
+                         [c[1:] for c in SOURCE_ERRORS], ids=[c[0] for c in SOURCE_ERRORS])
+def test_source_error(work: Path, capsys: pytest.CaptureFixture[str], file: str,
+                      class_name: str, vars: str, message: str) -> None:
+    keyvars = f'nodes:\n  - file: {file}\n    class: {class_name}\n    vars: {vars}\n'
+    fails_with(work, capsys, keyvars, message)
+
+
+def test_error_in_second_file_writes_nothing(work: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    keyvars = GOOD + '  - file: plain.py\n    class: Integrator\n    vars: [total]\n'
+    fails_with(work, capsys, keyvars,
+               "src/plain.py:1:1: class 'Integrator' does not derive from rclpy.node.Node "
+               '(bases: none)')
+
+
+def test_src_not_a_directory(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    code, _, err = run(capsys, 'outside.py', '--vars', 'keyvars.yaml', '-o', 'out')
+    assert (code, err) == (2, 'outside.py:0:0: SRC is not a directory\n')
+    assert not (work / 'out').exists()
+
+
+@pytest.mark.parametrize('out', ['src', 'src/out', './src/../src/sub/out'])
+def test_out_inside_src(work: Path, capsys: pytest.CaptureFixture[str], out: str) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    before = sorted(p.name for p in (work / 'src').iterdir())
+    code, _, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', out)
+    assert code == 2
+    assert err == f'{out}:0:0: OUT must not be SRC or inside it (SRC is {work / "src"})\n'
+    assert sorted(p.name for p in (work / 'src').iterdir()) == before
+
+
+def test_out_containing_src(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    (work / 'rory_manifest.json').write_text('{}\n')
+    code, _, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', '.')
+    assert (code, err) == (2, '.:0:0: OUT contains SRC; refusing to replace it\n')
+    assert (work / 'src' / 'integrator.py').read_text() == INTEGRATOR
+
+
+def test_out_exists_and_is_not_an_output(work: Path,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    (work / 'out').mkdir()
+    (work / 'out' / 'precious.txt').write_text('keep me')
+    code, _, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'out')
+    assert code == 2
+    assert err == ('out:0:0: OUT exists and is not a rory-instrument output '
+                   '(no rory_manifest.json); refusing to replace it\n')
+    assert [p.name for p in (work / 'out').iterdir()] == ['precious.txt']
+
+
+def test_out_is_a_file(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    code, _, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'outside.py')
+    assert (code, err) == (2, 'outside.py:0:0: OUT exists and is not a directory\n')
+
+
+def test_previous_output_is_replaced(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    (work / 'out').mkdir()
+    (work / 'out' / 'rory_manifest.json').write_text('{}\n')
+    (work / 'out' / 'stale.py').write_text('')
+    code, out, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'out')
+    assert (code, err) == (0, '')
+    assert out == 'instrumented integrator.py:Integrator vars=total,count,history\n'
+    assert sorted(p.name for p in (work / 'out').iterdir()) == [
+        'broken.py', 'integrator.py', 'plain.py', 'rory_manifest.json'
+    ]
+
+
+def test_empty_out_directory_is_used(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    (work / 'out').mkdir()
+    code, _, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'out')
+    assert (code, err) == (0, '')
+    assert (work / 'out' / 'rory_manifest.json').is_file()
+
+
+def test_out_parent_is_created(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    code, _, _ = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'build/deep/out')
+    assert code == 0
+    assert (work / 'build' / 'deep' / 'out' / 'integrator.py').is_file()
+    assert [p.name for p in (work / 'build' / 'deep').iterdir()] == ['out']
+
+
+def test_check_writes_nothing(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    code, out, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '--check')
+    assert (code, err) == (0, '')
+    assert out == 'checked integrator.py:Integrator vars=total,count,history\n'
+    code, out, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '--check', '-o', 'out')
+    assert code == 0
+    assert not (work / 'out').exists()
+
+
+def test_out_required_without_check(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    with pytest.raises(SystemExit) as exited:
+        main(['src', '--vars', 'keyvars.yaml'])
+    assert exited.value.code == 2
+    assert 'the following arguments are required: -o/--out' in capsys.readouterr().err
+
+
+def test_manifest_file(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'src' / 'pkg').mkdir()
+    (work / 'src' / 'pkg' / 'nodes.py').write_text(
+        'from rclpy.node import Node\n\n\nclass Outer:\n    class Inner(Node):\n'
+        '        def __init__(self):\n            self.x = 1\n'
+    )
+    (work / 'keyvars.yaml').write_text(
+        GOOD + '    replay: paced\n'
+        '  - file: pkg/nodes.py\n    class: Outer.Inner\n    vars: [x]\n'
+        '    checkpoint_interval: 2\n'
+    )
+    code, out, _ = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'out')
+    assert code == 0
+    assert out.splitlines() == [
+        'instrumented integrator.py:Integrator vars=total,count,history',
+        'instrumented pkg/nodes.py:Outer.Inner vars=x',
+    ]
+    text = (work / 'out' / 'rory_manifest.json').read_text()
+    assert text.endswith('}\n')
+    document = json.loads(text)
+    assert text == json.dumps(document, indent=2, sort_keys=True) + '\n'
+    assert document['format'] == 1
+    first, second = document['nodes']
+    assert set(first) == {'file', 'class', 'vars', 'source_sha256', 'manifest', 'replay'}
+    assert (first['file'], first['class'], first['vars'], first['replay']) == (
+        'integrator.py', 'Integrator', ['total', 'count', 'history'], 'paced'
+    )
+    assert (second['file'], second['class'], second['checkpoint_interval']) == (
+        'pkg/nodes.py', 'Outer.Inner', 2.0
+    )
+    for entry in (first, second):
+        assert f'manifest="{entry["manifest"]}"' in (work / 'out' / entry['file']).read_text()
+
+
+def test_interval_and_replay_are_not_hashed(work: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    assert run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'a')[0] == 0
+    (work / 'keyvars.yaml').write_text(GOOD + '    replay: fast\n    checkpoint_interval: 1\n')
+    assert run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'b')[0] == 0
+    first, second = (work / d / 'integrator.py' for d in ('a', 'b'))
+    assert first.read_bytes() == second.read_bytes()
+
+
+def test_node_spec_keeps_positions() -> None:
+    keyvars = parse_keyvars(
+        'nodes:\n  - file: a.py\n    class: A\n    vars: [on, yes]\n'
+        '    checkpoint_interval: 1e-3\n',
+        'k.yaml',
+    )
+    (spec,) = keyvars.nodes
+    # Attribute names are taken as written, not as YAML 1.1 booleans.
+    assert (spec.file, spec.class_name, spec.vars) == ('a.py', 'A', ('on', 'yes'))
+    assert spec.checkpoint_interval == 0.001
+    assert spec.replay is None
+    assert spec.mark() == Mark(2, 5)
+    assert spec.mark('class') == Mark(3, 12)
+    assert spec.mark('vars[1]') == Mark(4, 16)
+    assert spec.mark('replay') == Mark(2, 5)  # absent: falls back to the node
+    assert spec.field_path('vars') == 'nodes[0].vars'
+    assert str(keyvars.error(spec, 'vars[1]', 'x')) == 'k.yaml:4:16: x'
+
+
+def test_load_keyvars_reads_file(tmp_path: Path) -> None:
+    path = tmp_path / 'k.yaml'
+    path.write_text(GOOD)
+    assert load_keyvars(path).nodes[0].vars == ('total', 'count', 'history')
+    path.write_bytes(b'\xff\xfe')
+    with pytest.raises(ConfigError, match='cannot read keyvars file'):
+        load_keyvars(path, 'k.yaml')

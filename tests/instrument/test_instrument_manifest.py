@@ -1,0 +1,56 @@
+"""The manifest digest and rory_manifest.json."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+from rory_instrument.manifest import ManifestEntry, manifest_digest, render_manifest
+
+SHA = 'ab' * 32
+
+
+def test_digest_is_sha256_of_canonical_json() -> None:
+    canonical = (
+        '{"class":"Outer.Inner","file":"pkg/node.py","source_sha256":"' + SHA + '",'
+        '"vars":["total","count"]}'
+    )
+    expected = 'sha256:' + hashlib.sha256(canonical.encode()).hexdigest()
+    assert manifest_digest(file='pkg/node.py', class_name='Outer.Inner',
+                           vars=('total', 'count'), source_sha256=SHA) == expected
+
+
+def test_digest_depends_on_every_input() -> None:
+    variants = [
+        ('a.py', 'A', ('x', 'y'), SHA),
+        ('b.py', 'A', ('x', 'y'), SHA),
+        ('a.py', 'B', ('x', 'y'), SHA),
+        ('a.py', 'A', ('y', 'x'), SHA),
+        ('a.py', 'A', ('x', 'y'), 'cd' * 32),
+    ]
+    digests = {
+        manifest_digest(file=f, class_name=c, vars=v, source_sha256=s) for f, c, v, s in variants
+    }
+    assert len(digests) == len(variants)
+
+
+def test_render_manifest_sorted_and_stable() -> None:
+    b = ManifestEntry('b.py', 'B', ('x',), SHA, 'sha256:2', checkpoint_interval=0.5)
+    a2 = ManifestEntry('a.py', 'Z', ('y',), SHA, 'sha256:3', replay='fast')
+    a1 = ManifestEntry('a.py', 'A', ('z',), SHA, 'sha256:1')
+    text = render_manifest([b, a2, a1])
+    assert text == render_manifest([a1, a2, b])
+    assert text.endswith('\n') and not text.endswith('\n\n')
+    document = json.loads(text)
+    assert document == {
+        'format': 1,
+        'nodes': [
+            {'file': 'a.py', 'class': 'A', 'vars': ['z'], 'source_sha256': SHA,
+             'manifest': 'sha256:1'},
+            {'file': 'a.py', 'class': 'Z', 'vars': ['y'], 'source_sha256': SHA,
+             'manifest': 'sha256:3', 'replay': 'fast'},
+            {'file': 'b.py', 'class': 'B', 'vars': ['x'], 'source_sha256': SHA,
+             'manifest': 'sha256:2', 'checkpoint_interval': 0.5},
+        ],
+    }
+    assert text.startswith('{\n  "format": 1,\n  "nodes": [\n    {\n      "class": "A",\n')

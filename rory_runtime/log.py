@@ -1,0 +1,635 @@
+"""Message log segments: rosbag2 MCAP bags that survive SIGKILL of the writer.
+
+A node records every message it receives. Each *segment* is one rosbag2 bag directory
+(``<name>/<name>.mcap`` plus ``metadata.yaml`` once closed) written through
+:class:`rosbags.rosbag2.Writer` with a storage plugin that differs from the stock one in two
+ways:
+
+- The stock plugin collects messages in a 1 MiB in-memory chunk, so a killed writer loses
+  them. Here schema, channel and message records are written top-level and unchunked (MCAP
+  allows that) and flushed before ``write`` returns: a message is in the OS, safe from a
+  SIGKILL of the process (not from a power cut; nothing is fsynced), once written.
+- The stock plugin writes ``sequence=0`` and ``publish_time=log_time``. Here each message
+  record keeps its identity in those standard MCAP fields: ``log_time`` is the receive time,
+  ``publish_time`` the publisher's source timestamp and ``sequence`` the publisher sequence
+  number truncated to u32.
+
+Closing writes the summary, footer and ``metadata.yaml`` as usual, so a closed segment is a
+normal rosbag2 bag that :class:`rosbags.rosbag2.Reader` opens. The stock reader, however,
+refuses a file without footer, which is what a killed writer leaves. :func:`read_segment`
+therefore scans the records from the start itself, and stops silently at a torn final
+record: after a kill that is expected, not an error.
+
+Closed segments of messages whose receive times go backwards (a clock step, sim time
+restarting) stay readable by :func:`read_segment`, but the stock reader refuses to iterate
+unindexed MCAP messages out of ``log_time`` order.
+
+Limitation: records carry no checksum, so a corrupted length field that points past the end
+of the file is indistinguishable from a torn tail and ends the scan early.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import struct
+from collections.abc import Iterator
+from contextlib import suppress
+from dataclasses import dataclass
+from functools import cache
+from io import BytesIO
+from pathlib import Path
+from typing import TYPE_CHECKING, BinaryIO, Final, Literal
+
+from rosbags.interfaces import Connection, ConnectionExtRosbag2, MessageDefinitionFormat
+from rosbags.rosbag2 import CompressionMode, StoragePlugin, Writer, WriterError
+from rosbags.rosbag2.storage_mcap import (
+    Channel,
+    McapWriter,
+    Schema,
+    write_channel,
+    write_schema,
+    write_string,
+)
+from rosbags.typesys import Stores, TypesysError, get_typestore
+
+from rory_runtime.errors import LogError
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+    from types import TracebackType
+
+    from rosbags.rosbag2.writer import StorageWriter
+    from rosbags.typesys.store import Typestore
+
+MCAP_MAGIC: Final = b'\x89MCAP0\r\n'
+
+OP_HEADER: Final = 0x01
+OP_FOOTER: Final = 0x02
+OP_SCHEMA: Final = 0x03
+OP_CHANNEL: Final = 0x04
+OP_MESSAGE: Final = 0x05
+OP_METADATA: Final = 0x0C
+OP_DATA_END: Final = 0x0F
+
+_RECORD_HEAD: Final = struct.Struct('<BQ')  # opcode, body length
+_MESSAGE_FIELDS: Final = struct.Struct('<HIQQ')  # channel id, sequence, log_time, publish_time
+_MESSAGE_HEAD: Final = struct.Struct('<BQHIQQ')  # both of the above, for writing in one go
+_U16: Final = struct.Struct('<H')
+_U32: Final = struct.Struct('<I')
+_SEQ_MASK: Final = 0xFFFFFFFF
+_SEGMENT_RE: Final = re.compile(r'[0-9]{10}')
+_MAX_NUMBER: Final = 10**10 - 1  # directory names hold ten digits
+_NODE_RE: Final = re.compile(r'[A-Za-z0-9_][A-Za-z0-9_.-]*')
+
+
+@cache
+def default_typestore() -> Typestore:
+    """Return the ROS 2 Jazzy typestore, built once per process (it takes ~100 ms)."""
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+@dataclass(frozen=True, slots=True)
+class LogEntry:
+    """One logged message.
+
+    Attributes:
+        topic: Topic it was received on.
+        msgtype: ROS type name, e.g. ``std_msgs/msg/Int64``.
+        recv_ns: Receive time (ns); the MCAP ``log_time``.
+        source_ns: Publisher's source timestamp (ns); the MCAP ``publish_time``.
+        seq: Publisher sequence number truncated to u32; the MCAP ``sequence``.
+        data: CDR bytes exactly as received.
+
+    """
+
+    topic: str
+    msgtype: str
+    recv_ns: int
+    source_ns: int
+    seq: int
+    data: bytes
+
+    @property
+    def ident(self) -> tuple[int, int]:
+        """Identity of the message: ``(source_ns, seq)``."""
+        return (self.source_ns, self.seq)
+
+
+# --------------------------------------------------------------------------- writing
+
+
+class _DurableMcapWriter(McapWriter):
+    """MCAP storage that writes every record top-level and flushes it at once."""
+
+    def __init__(self, path: Path, compression: CompressionMode) -> None:
+        super().__init__(path, compression)
+        self.bio.flush()  # magic and header record
+
+    def add_msgtype(self, connection: Connection) -> None:
+        """Write the schema record of a connection's message type."""
+        fmt = connection.msgdef.format
+        encoding = 'ros2msg' if fmt == MessageDefinitionFormat.MSG else 'ros2idl'
+        schema = Schema(len(self.schemas) + 1, connection.msgtype, encoding, connection.msgdef.data)
+        self.schemas.append(schema)
+        write_schema(self.bio, schema)
+        self.bio.flush()
+
+    def add_connection(self, connection: Connection, offered_qos_profiles: str) -> None:
+        """Write the channel record of a connection."""
+        metadata = BytesIO()
+        write_string(metadata, 'offered_qos_profiles')
+        write_string(metadata, offered_qos_profiles)
+        ext = connection.ext
+        encoding = ext.serialization_format if isinstance(ext, ConnectionExtRosbag2) else 'cdr'
+        channel = Channel(
+            connection.id, connection.msgtype, connection.topic, encoding, metadata.getvalue()
+        )
+        self.channels.append(channel)
+        self.channel_stats[connection.id] = 0
+        write_channel(self.bio, channel, self.schemas)
+        self.bio.flush()
+
+    def write(self, connection: Connection, timestamp: int, data: bytes | memoryview) -> None:
+        """Write a message without identity (stock interface)."""
+        self.write_message(connection.id, timestamp, timestamp, 0, data)
+
+    def write_message(
+        self,
+        channel_id: int,
+        log_time: int,
+        publish_time: int,
+        sequence: int,
+        data: bytes | memoryview,
+    ) -> None:
+        """Write one message record and flush it to the OS.
+
+        Raises:
+            struct.error: A time or the sequence does not fit its field; nothing written.
+            OSError: Writing failed; the file may end in a torn record.
+
+        """
+        head = _MESSAGE_HEAD.pack(
+            OP_MESSAGE,
+            _MESSAGE_FIELDS.size + len(data),
+            channel_id,
+            sequence,
+            log_time,
+            publish_time,
+        )
+        self.bio.write(head)
+        self.bio.write(data)
+        self.bio.flush()
+        self.channel_stats[channel_id] += 1
+        self.message_start_time = min(log_time, self.message_start_time)
+        self.message_end_time = max(log_time, self.message_end_time)
+
+
+class _SegmentBag(Writer):
+    """rosbag2 writer using the durable MCAP storage and recording message identities."""
+
+    STORAGE_PLUGINS: Mapping[StoragePlugin, type[StorageWriter]] = {
+        StoragePlugin.MCAP: _DurableMcapWriter,
+    }
+
+    def open(self) -> None:
+        """Create the bag directory (mode 0700) and the .mcap file."""
+        super().open()
+        os.chmod(self.path, 0o700)
+
+    def write_identified(
+        self,
+        connection: Connection,
+        log_time: int,
+        publish_time: int,
+        sequence: int,
+        data: bytes | memoryview,
+    ) -> None:
+        """Like :meth:`Writer.write`, keeping the identity in the MCAP record."""
+        storage = self.storage
+        if not isinstance(storage, _DurableMcapWriter):
+            msg = 'Bag was not opened.'
+            raise WriterError(msg)
+        storage.write_message(connection.id, log_time, publish_time, sequence, data)
+        self.counts[connection.id] += 1
+        self.min_timestamp = min(log_time, self.min_timestamp)
+        self.max_timestamp = max(log_time, self.max_timestamp)
+
+
+class SegmentWriter:
+    """Writes one log segment; every message is in the OS before :meth:`write` returns.
+
+    Args:
+        path: Bag directory to create; must not exist.
+        typestore: Where message definitions come from; defaults to ROS 2 Jazzy's.
+
+    Raises:
+        LogError: The segment cannot be created.
+
+    Attributes:
+        path: The bag directory.
+        count: Messages written.
+
+    """
+
+    def __init__(self, path: Path, typestore: Typestore | None = None) -> None:
+        self.path = Path(path)
+        self.count = 0
+        self._typestore = typestore
+        self._connections: dict[tuple[str, str], Connection] = {}
+        self._failure: str | None = None
+        self._closed = False
+        try:
+            self._bag = _SegmentBag(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+            self._bag.open()
+        except (WriterError, OSError) as err:
+            raise LogError(self.path, f'cannot create segment: {err}') from None
+
+    def write(
+        self,
+        topic: str,
+        msgtype: str,
+        recv_ns: int,
+        source_ns: int,
+        seq: int,
+        data: bytes,
+    ) -> None:
+        """Append one message.
+
+        Args:
+            topic: Topic it was received on.
+            msgtype: ROS type name, e.g. ``std_msgs/msg/Int64``.
+            recv_ns: Receive time (ns).
+            source_ns: Publisher's source timestamp (ns).
+            seq: Publisher sequence number; stored truncated to u32.
+            data: CDR bytes as received.
+
+        Raises:
+            LogError: Unknown message type, a time outside u64, the segment is closed, or
+                writing failed (after which the segment takes no more messages).
+
+        """
+        if self._closed or self._failure is not None:
+            raise LogError(self.path, self._refusal(topic))
+        connection = self._connections.get((topic, msgtype))
+        if connection is None:
+            connection = self._add_connection(topic, msgtype)
+        try:
+            self._bag.write_identified(connection, recv_ns, source_ns, seq & _SEQ_MASK, data)
+        except struct.error:
+            msg = f'topic {topic!r}: times must be u64, got recv {recv_ns}, source {source_ns}'
+            raise LogError(self.path, msg) from None
+        except OSError as err:
+            raise self._fail(topic, err) from None
+        self.count += 1
+
+    def close(self) -> None:
+        """Write the MCAP summary, footer and metadata.yaml; a no-op when already closed.
+
+        After a failed write only the file is closed: it stays readable by
+        :func:`read_segment` up to the failure, like the segment of a killed writer.
+
+        Raises:
+            LogError: Writing the summary or metadata failed.
+
+        """
+        if self._closed:
+            return
+        self._closed = True
+        if self._failure is not None:
+            with suppress(OSError):
+                self._bag.abort()
+            return
+        try:
+            self._bag.close()
+        except OSError as err:
+            with suppress(OSError):
+                self._bag.abort()
+            raise LogError(self.path, f'cannot close segment: {err}') from None
+
+    def __enter__(self) -> SegmentWriter:
+        """Return self; the segment is already open."""
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc_val: BaseException | None,
+        exc_tb: TracebackType | None,
+    ) -> Literal[False]:
+        """Close the segment; what was written stays valid even if the block raised."""
+        self.close()
+        return False
+
+    def _add_connection(self, topic: str, msgtype: str) -> Connection:
+        typestore = self._typestore if self._typestore is not None else default_typestore()
+        try:
+            connection = self._bag.add_connection(topic, msgtype, typestore=typestore)
+        except (TypesysError, KeyError):
+            msg = f'topic {topic!r}: message type {msgtype!r} is not in the typestore'
+            raise LogError(self.path, msg) from None
+        except OSError as err:
+            raise self._fail(topic, err) from None
+        self._connections[topic, msgtype] = connection
+        return connection
+
+    def _fail(self, topic: str, err: OSError) -> LogError:
+        # A failed write may have left part of a record behind; appending after it would
+        # turn a torn tail into corruption in the middle, so the segment takes no more.
+        self._failure = f'{err}'
+        return LogError(self.path, f'topic {topic!r}: cannot write: {err}')
+
+    def _refusal(self, topic: str) -> str:
+        if self._failure is not None:
+            return f'topic {topic!r}: segment unusable after an earlier failure: {self._failure}'
+        return f'topic {topic!r}: segment is closed'
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_segment(path: Path) -> Iterator[LogEntry]:
+    """Read the messages of a segment, closed or left behind by a killed writer.
+
+    Args:
+        path: The bag directory (or its .mcap file).
+
+    Returns:
+        An iterator over the complete messages in file order. It stops silently at a torn
+        final record.
+
+    Raises:
+        LogError: No .mcap file (raised at once), or, while iterating, the file is not MCAP
+            or holds a complete but malformed record (the message names its offset).
+
+    """
+    return _scan(_mcap_path(Path(path)))
+
+
+def _mcap_path(path: Path) -> Path:
+    if path.is_file():
+        return path
+    mcap = path / f'{path.name}.mcap'
+    if not mcap.is_file():
+        raise LogError(path, f'no {mcap.name} in segment')
+    return mcap
+
+
+def _scan(mcap: Path) -> Iterator[LogEntry]:
+    try:
+        stream = mcap.open('rb')
+    except OSError as err:
+        raise LogError(mcap, f'cannot open: {err.strerror or err}') from None
+    with stream:
+        yield from _Scanner(mcap, stream).entries()
+
+
+class _Scanner:
+    """Reads top-level MCAP records of one file in order."""
+
+    def __init__(self, path: Path, stream: BinaryIO) -> None:
+        self.path = path
+        self.stream = stream
+        # Size at open: a length field beyond it is a torn record, and never triggers a
+        # huge allocation.
+        self.size = os.fstat(stream.fileno()).st_size
+        self.schemas: dict[int, str] = {}
+        self.channels: dict[int, tuple[str, str]] = {}
+
+    def entries(self) -> Iterator[LogEntry]:
+        magic = self.stream.read(len(MCAP_MAGIC))
+        if magic != MCAP_MAGIC:
+            if MCAP_MAGIC.startswith(magic):
+                return  # killed before the magic was complete
+            raise LogError(self.path, 'not an MCAP file (bad magic)')
+        offset = len(MCAP_MAGIC)
+        first = True
+        while (record := self._next_record(offset)) is not None:
+            opcode, body = record
+            if first:
+                self._header(opcode, body, offset)
+                first = False
+            elif opcode == OP_MESSAGE:
+                yield self._message(body, offset)
+            elif opcode == OP_SCHEMA:
+                self._schema(body, offset)
+            elif opcode == OP_CHANNEL:
+                self._channel(body, offset)
+            elif opcode in {OP_DATA_END, OP_FOOTER}:
+                return
+            elif opcode != OP_METADATA:
+                # Segments are written unchunked; anything else means the bytes are damaged.
+                msg = f'unexpected record opcode 0x{opcode:02x} at offset {offset}'
+                raise LogError(self.path, msg)
+            offset += _RECORD_HEAD.size + len(body)
+
+    def _next_record(self, offset: int) -> tuple[int, bytes] | None:
+        """Return the next complete record, or None at the end or at a torn record."""
+        head = self.stream.read(_RECORD_HEAD.size)
+        if len(head) < _RECORD_HEAD.size:
+            return None
+        opcode, length = _RECORD_HEAD.unpack(head)
+        if length > self.size - offset - _RECORD_HEAD.size:
+            return None
+        body = self.stream.read(length)
+        if len(body) < length:
+            return None
+        return opcode, body
+
+    def _header(self, opcode: int, body: bytes, offset: int) -> None:
+        if opcode != OP_HEADER:
+            msg = f'expected the MCAP header record at offset {offset}, got opcode 0x{opcode:02x}'
+            raise LogError(self.path, msg)
+        fields = _Fields(body, self.path, 'header', offset)
+        profile = fields.string()
+        if profile != 'ros2':
+            raise LogError(self.path, f'MCAP profile {profile!r}, expected ros2')
+
+    def _schema(self, body: bytes, offset: int) -> None:
+        fields = _Fields(body, self.path, 'schema', offset)
+        schema_id = fields.u16()
+        name = fields.string()
+        fields.string()  # encoding
+        fields.string()  # definition
+        if schema_id == 0:
+            raise fields.error('schema id 0')
+        self.schemas[schema_id] = name
+
+    def _channel(self, body: bytes, offset: int) -> None:
+        fields = _Fields(body, self.path, 'channel', offset)
+        channel_id = fields.u16()
+        schema_id = fields.u16()
+        topic = fields.string()
+        fields.string()  # message encoding
+        fields.blob()  # metadata
+        msgtype = self.schemas.get(schema_id)
+        if msgtype is None:
+            raise fields.error(f'unknown schema id {schema_id}')
+        self.channels[channel_id] = (topic, msgtype)
+
+    def _message(self, body: bytes, offset: int) -> LogEntry:
+        if len(body) < _MESSAGE_FIELDS.size:
+            msg = f'malformed message record at offset {offset}: {len(body)} bytes'
+            raise LogError(self.path, msg)
+        channel_id, sequence, log_time, publish_time = _MESSAGE_FIELDS.unpack_from(body)
+        channel = self.channels.get(channel_id)
+        if channel is None:
+            msg = f'message record at offset {offset} refers to unknown channel {channel_id}'
+            raise LogError(self.path, msg)
+        topic, msgtype = channel
+        data = body[_MESSAGE_FIELDS.size :]
+        return LogEntry(topic, msgtype, log_time, publish_time, sequence, data)
+
+
+class _Fields:
+    """Bounds-checked little-endian reader over one record body."""
+
+    def __init__(self, body: bytes, path: Path, kind: str, offset: int) -> None:
+        self.body = body
+        self.pos = 0
+        self.path = path
+        self.kind = kind
+        self.offset = offset
+
+    def error(self, reason: str) -> LogError:
+        msg = f'malformed {self.kind} record at offset {self.offset}: {reason}'
+        return LogError(self.path, msg)
+
+    def u16(self) -> int:
+        (value,) = _U16.unpack(self._take(_U16.size))
+        return int(value)
+
+    def blob(self) -> bytes:
+        (length,) = _U32.unpack(self._take(_U32.size))
+        return self._take(int(length))
+
+    def string(self) -> str:
+        try:
+            return self.blob().decode()
+        except UnicodeDecodeError:
+            raise self.error('string is not UTF-8') from None
+
+    def _take(self, count: int) -> bytes:
+        end = self.pos + count
+        if end > len(self.body):
+            raise self.error('field runs past the end of the record')
+        chunk = self.body[self.pos : end]
+        self.pos = end
+        return chunk
+
+
+# --------------------------------------------------------------------------- bookkeeping
+
+
+class SegmentStore:
+    """The numbered log segments of one node: ``<root>/<node>/log/<n:010d>/``.
+
+    Args:
+        root: Directory holding one subdirectory per node.
+        node: Node id; used as a directory name, so letters, digits, ``_ . -`` only.
+
+    Raises:
+        ValueError: Bad node id.
+
+    Attributes:
+        dir: The node's log directory.
+
+    """
+
+    def __init__(self, root: Path, node: str) -> None:
+        if not _NODE_RE.fullmatch(node):
+            msg = f'node id {node!r} cannot be used as a directory name'
+            raise ValueError(msg)
+        self.node = node
+        self.dir = Path(root) / node / 'log'
+
+    def numbers(self) -> list[int]:
+        """Return the existing segment numbers, ascending."""
+        try:
+            entries = list(os.scandir(self.dir))
+        except FileNotFoundError:
+            return []
+        except OSError as err:
+            raise LogError(self.dir, f'cannot list: {err.strerror or err}') from None
+        return sorted(
+            int(entry.name)
+            for entry in entries
+            if _SEGMENT_RE.fullmatch(entry.name) and entry.is_dir()
+        )
+
+    def path(self, n: int) -> Path:
+        """Return the bag directory of segment n."""
+        return self.dir / f'{n:010d}'
+
+    def next_number(self) -> int:
+        """Return one above the highest existing segment number (1 if none)."""
+        return max(self.numbers(), default=0) + 1
+
+    def open(self, n: int, typestore: Typestore | None = None) -> SegmentWriter:
+        """Create segment n, making the log directory and its parents with mode 0700.
+
+        Raises:
+            LogError: The segment exists already, cannot be created, or n is outside
+                1..9999999999.
+
+        """
+        if not 1 <= n <= _MAX_NUMBER:
+            raise LogError(self.path(n), f'segment number {n} outside 1..{_MAX_NUMBER}')
+        try:
+            _make_private_dir(self.dir)
+        except OSError as err:
+            raise LogError(self.dir, f'cannot create: {err.strerror or err}') from None
+        return SegmentWriter(self.path(n), typestore)
+
+    def read_after(self, cut: int | None) -> Iterator[LogEntry]:
+        """Yield the entries of segments numbered above cut (all if None).
+
+        Segments come in number order, entries in file order. A segment directory that is
+        still empty (its writer was killed right after creating it) holds no messages.
+        """
+        for n in self.numbers():
+            if cut is not None and n <= cut:
+                continue
+            path = self.path(n)
+            if not any(path.iterdir()):
+                continue
+            yield from read_segment(path)
+
+    def identities_after(self, cut: int | None) -> dict[str, set[tuple[int, int]]]:
+        """Return per topic the identities ``(source_ns, seq)`` logged after cut."""
+        identities: dict[str, set[tuple[int, int]]] = {}
+        for entry in self.read_after(cut):
+            identities.setdefault(entry.topic, set()).add(entry.ident)
+        return identities
+
+    def drop_through(self, n: int) -> None:
+        """Delete the segments numbered n and below.
+
+        Raises:
+            LogError: A segment cannot be deleted.
+
+        """
+        for number in self.numbers():
+            if number > n:
+                break
+            path = self.path(number)
+            try:
+                shutil.rmtree(path)
+            except FileNotFoundError:
+                pass
+            except OSError as err:
+                raise LogError(path, f'cannot delete segment: {err}') from None
+
+
+def _make_private_dir(path: Path) -> None:
+    """Create path and its missing parents with mode 0700, whatever the umask."""
+    missing: list[Path] = []
+    current = path
+    while not current.exists():
+        missing.append(current)
+        current = current.parent
+    for directory in reversed(missing):
+        with suppress(FileExistsError):
+            directory.mkdir(mode=0o700)
+            os.chmod(directory, 0o700)

@@ -1,0 +1,38 @@
+# RORY for ROS 2. On a fresh machine, the two commands are:
+#   make demo   - a node under RORY, killed, recovered with its state; a table per method
+#   make test   - lint, type check and the test suite (real ROS 2 processes)
+# Each creates .venv and installs what it needs on first use.
+
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test lint bench discovery clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m rory_eval.demo
+
+lint: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m mypy
+
+test: lint
+	$(PY) -m pytest -n 2
+
+# Recovery time per method, median of 10 runs, side by side (not run in CI).
+bench: $(STAMP)
+	$(PY) -m rory_eval.bench --runs 10
+
+# How fast a SIGKILLed and restarted process is heard, per DDS setting.
+discovery: $(STAMP)
+	$(PY) -m rory_eval.discovery --runs 12
+
+clean:
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache demo-out

@@ -1,0 +1,334 @@
+"""The integrator scenario: a deterministic publisher, a stateful node under RORY, SIGKILLs.
+
+Everything is real: ``rory-instrument`` rewrites ``examples/integrator``, ``rory supervise`` runs
+it, a publisher process sends 1..N, this process SIGKILLs the node at chosen moments (found by
+following the supervisor's ``events.jsonl``) and watches ``/integrator/state`` and ``/e_stop``.
+With no message lost or applied twice the node's final history is exactly [1, ..., N].
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import rclpy
+import yaml
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import Bool, String
+
+from rory_runtime.dds import fast_rediscovery_env
+
+REPO = Path(__file__).resolve().parent.parent
+EXAMPLE = REPO / 'examples' / 'integrator'
+
+
+@dataclass(frozen=True)
+class Kill:
+    """When to SIGKILL the node: exactly one of the fields is set."""
+
+    after: float | None = None  # seconds after the first number was published
+    after_checkpoint: int | None = None  # right after the node reports its k-th checkpoint
+    during_recovery: float | None = None  # this long after the replacement starts replaying
+
+    def describe(self) -> str:
+        """Short label."""
+        if self.after is not None:
+            return f'at {self.after:g} s'
+        if self.after_checkpoint is not None:
+            return f'just after checkpoint {self.after_checkpoint}'
+        return f'{self.during_recovery:g} s into the replay'
+
+
+@dataclass
+class ScenarioResult:
+    """What one run produced."""
+
+    method: str
+    expected: int
+    history: list[int]
+    recoveries: list[dict[str, Any]]
+    kills: list[tuple[str, float]]
+    e_stop: list[tuple[float, bool]]
+    events: list[dict[str, Any]] = field(repr=False)
+    log: str = field(repr=False, default='')
+
+    @property
+    def correct(self) -> bool:
+        """The final state equals the no-crash state."""
+        return self.history == list(range(1, self.expected + 1))
+
+    @property
+    def lost(self) -> int:
+        """Numbers never applied."""
+        return self.expected - len(set(self.history) & set(range(1, self.expected + 1)))
+
+    @property
+    def duplicated(self) -> int:
+        """Numbers applied more than once."""
+        return len(self.history) - len(set(self.history))
+
+    @property
+    def recovery_ms(self) -> list[float]:
+        """Crash detected -> released, per recovery."""
+        return [float(r['total_ms']) for r in self.recoveries]
+
+
+def scenario_env(domain_id: int) -> dict[str, str]:
+    """Environment for every process of one isolated run."""
+    env = dict(os.environ)
+    env.update(fast_rediscovery_env())
+    env['ROS_DOMAIN_ID'] = str(domain_id)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+def prepare(workdir: Path, method: str, *, interval: float, pace: str) -> Path:
+    """Instrument the example into ``workdir`` and write a supervisor config; its path."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    out = workdir / 'out'
+    if not out.exists():
+        subprocess.run(
+            [
+                sys.executable, '-m', 'rory_instrument', str(EXAMPLE),
+                '--vars', str(EXAMPLE / 'keyvars.yaml'), '-o', str(out),
+            ],
+            check=True,
+            capture_output=True,
+        )
+    config = {
+        'nodes': [
+            {
+                'name': 'integrator',
+                'command': ['python', 'out/integrator.py'],
+                'method': method,
+                'checkpoint_interval': interval,
+                'replay': pace,
+            }
+        ],
+        'safe_state': [
+            {
+                'topic': '/e_stop',
+                'type': 'std_msgs/msg/Bool',
+                'hold': {'data': True},
+                'release': {'data': False},
+            }
+        ],
+        'store': f'store-{method}',
+    }
+    path = workdir / f'supervise-{method}.yaml'
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
+class _Observer:
+    """Subscribes to the node's state and the safe-state topic in its own rclpy context."""
+
+    def __init__(self, domain_id: int) -> None:
+        self.context = Context()
+        rclpy.init(
+            context=self.context, domain_id=domain_id,
+            signal_handler_options=SignalHandlerOptions.NO,
+        )
+        self.node = Node('scenario_observer', context=self.context)
+        latched = QoSProfile(
+            depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+            reliability=ReliabilityPolicy.RELIABLE,
+        )
+        self.state: dict[str, Any] = {}
+        self.state_changed = time.monotonic()
+        self.e_stop: list[tuple[float, bool]] = []
+        self.node.create_subscription(String, '/integrator/state', self._on_state, latched)
+        self.node.create_subscription(Bool, '/e_stop', self._on_e_stop, latched)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while self.context.ok():
+            with contextlib.suppress(Exception):
+                self.executor.spin_once(timeout_sec=0.05)
+
+    def _on_state(self, msg: String) -> None:
+        state = json.loads(msg.data)
+        if state != self.state:
+            self.state = state
+            self.state_changed = time.monotonic()
+
+    def _on_e_stop(self, msg: Bool) -> None:
+        self.e_stop.append((time.monotonic(), bool(msg.data)))
+
+    def close(self) -> None:
+        self.context.try_shutdown()
+        self._thread.join(timeout=2.0)
+
+
+class _Events:
+    """Follows the supervisor's events.jsonl."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.events: list[dict[str, Any]] = []
+        self._offset = 0
+
+    def poll(self) -> list[dict[str, Any]]:
+        if not self.path.exists():
+            return []
+        with self.path.open('rb') as f:
+            f.seek(self._offset)
+            data = f.read()
+        end = data.rfind(b'\n') + 1
+        self._offset += end
+        new = [json.loads(line) for line in data[:end].splitlines() if line.strip()]
+        self.events.extend(new)
+        return new
+
+
+@contextlib.contextmanager
+def _process(
+    args: list[str], env: dict[str, str], cwd: Path, log: Path
+) -> Iterator[subprocess.Popen[bytes]]:
+    with log.open('wb') as out:
+        proc = subprocess.Popen(args, env=env, cwd=cwd, stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        try:
+            yield proc
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    proc.wait()
+
+
+def run(
+    method: str,
+    kills: tuple[Kill, ...],
+    workdir: Path,
+    *,
+    domain_id: int,
+    count: int = 300,
+    rate: float = 50.0,
+    interval: float = 2.0,
+    pace: str = 'paced',
+    timeout: float = 90.0,
+) -> ScenarioResult:
+    """Run the scenario once; always reaps every process it started."""
+    workdir = workdir.resolve()
+    config = prepare(workdir, method, interval=interval, pace=pace)
+    store = workdir / f'store-{method}'
+    if store.exists():
+        shutil.rmtree(store)
+    env = scenario_env(domain_id)
+    # This process joins the run too (the observer): same discovery settings as the others.
+    os.environ.update({k: v for k, v in env.items() if k.startswith(('FAST', 'ROS_'))})
+    observer = _Observer(domain_id)
+    events = _Events(store / 'events.jsonl')
+    tracker = _Tracker()
+    kills_done: list[tuple[str, float]] = []
+    pending = list(kills)
+    deadline = time.monotonic() + timeout
+    sup_log = workdir / f'supervisor-{method}.log'
+    try:
+        with _process(
+            [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
+            env, workdir, sup_log,
+        ) as sup:
+            while tracker.state != 'RUNNING':
+                tracker.feed(events.poll())
+                if sup.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(f'node did not start:\n{sup_log.read_text()}')
+                time.sleep(0.01)
+            # The node, plus RORY's own reader for the methods that record.
+            min_subs = '2' if method in ('rory', 'replay') else '1'
+            publisher = [sys.executable, str(EXAMPLE / 'count_publisher.py'), str(count), str(rate)]
+            with _process(
+                [*publisher, min_subs], env, workdir, workdir / f'publisher-{method}.log'
+            ) as pub:
+                started: float | None = None
+                while True:
+                    now = time.monotonic()
+                    if now > deadline:
+                        raise RuntimeError(f'scenario timed out:\n{sup_log.read_text()[-4000:]}')
+                    tracker.feed(events.poll())
+                    if started is None and observer.state.get('count', 0) > 0:
+                        started = now
+                    if pending and started is not None and tracker.pid is not None:
+                        kill = pending[0]
+                        if tracker.due(kill, started, now):
+                            os.kill(tracker.pid, signal.SIGKILL)
+                            kills_done.append((kill.describe(), now))
+                            pending.pop(0)
+                            tracker.replaying_since = None
+                    published = pub.poll() is not None
+                    # Settled: no news from the node for a while since it last became RUNNING
+                    # (a recovered node publishes its state on its 1 Hz timer).
+                    settled = now - max(observer.state_changed, tracker.running_since) > 2.5
+                    if published and not pending and tracker.state == 'RUNNING' and (
+                        observer.state.get('count') == count or settled
+                    ):
+                        break
+                    time.sleep(0.005)
+    finally:
+        observer.close()
+        events.poll()
+    return ScenarioResult(
+        method=method,
+        expected=count,
+        history=list(observer.state.get('history', [])),
+        recoveries=[e for e in events.events if e['kind'] == 'recovered'],
+        kills=kills_done,
+        e_stop=observer.e_stop,
+        events=events.events,
+        log=sup_log.read_text(),
+    )
+
+
+class _Tracker:
+    """What the events say so far: the node's pid and state, checkpoints, replay start."""
+
+    def __init__(self) -> None:
+        self.pid: int | None = None
+        self.state = ''
+        self.checkpoints = 0
+        self.replaying_since: float | None = None
+        self.running_since = 0.0
+
+    def feed(self, new: list[dict[str, Any]]) -> None:
+        for ev in new:
+            if ev['kind'] == 'spawn':
+                self.pid = int(ev['pid'])
+            elif ev['kind'] == 'checkpoint':
+                self.checkpoints += 1
+            elif ev['kind'] == 'state':
+                self.state = ev['new']
+                self.replaying_since = time.monotonic() if ev['new'] == 'REPLAYING' else None
+                if ev['new'] == 'RUNNING':
+                    self.running_since = time.monotonic()
+
+    def due(self, kill: Kill, started: float, now: float) -> bool:
+        if kill.after is not None:
+            return now - started >= kill.after
+        if kill.after_checkpoint is not None:
+            return self.checkpoints >= kill.after_checkpoint
+        assert kill.during_recovery is not None
+        since = self.replaying_since
+        return since is not None and now - since >= kill.during_recovery

@@ -1,0 +1,768 @@
+"""The node side of RORY: what an instrumented node links against.
+
+``rory-instrument`` decorates a node class with :func:`checkpointed`. Run without the supervisor
+the decorator returns the class untouched, so the program behaves exactly like the original.
+Under the supervisor (``RORY_NODE`` set) it attaches a :class:`NodeRuntime` to every instance,
+which sits between the node and rclpy:
+
+* every subscription is switched to raw delivery so the runtime sees the CDR bytes; it logs each
+  message to the current MCAP segment *before* handing the deserialized message to the user's
+  callback (write-ahead), and keeps a window of recent message identities per topic;
+* every user callback runs under one lock, and the checkpoint timer takes the same lock, so a
+  snapshot is always taken between two callbacks;
+* while the node is isolated (S2), publishers are muted, user timers are held and live messages
+  are buffered instead of applied; recorded messages arrive on the node's shadow topic instead.
+
+Recovery from the node's point of view (the supervisor drives S1-S4, see
+``supervisor/recovery.py``):
+
+1. restore: before any user callback can run, the newest valid checkpoint is loaded from the store
+   (S3, restore);
+2. the node says HELLO and answers SYNC, proving the shadow path works both ways;
+3. recorded messages after the checkpoint's cut are applied in recorded order (S3, replay);
+   anything whose identity is already in the window was absorbed before and is skipped;
+4. RELEASE: outputs unmuted, timers started (S4). Each input topic is still taken from the
+   shadow topic, where the supervisor relays what its own reader receives, until the node's live
+   subscription has been seen to carry the same messages; then that topic switches to live.
+   The relay covers messages published before the new live reader was matched by its writer,
+   which a plain re-subscribe would silently lose.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import functools
+import inspect
+import logging
+import os
+import queue
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar, cast
+
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.serialization import deserialize_message
+from rclpy.subscription import Subscription
+from rclpy.timer import Timer
+from std_msgs.msg import String, UInt8MultiArray
+
+from . import codec, protocol
+from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
+from .log import SegmentStore, SegmentWriter, default_typestore
+from .msgtypes import type_name_of
+from .protocol import (
+    ENV_INCARNATION,
+    ENV_INTERVAL,
+    ENV_METHOD,
+    ENV_MODE,
+    ENV_NODE,
+    ENV_STORE,
+    FLAG_RELAY,
+    InputSpec,
+    MessageId,
+    Method,
+    Mode,
+    StatusKind,
+)
+from .store import Checkpoint, CheckpointStore
+
+_logger = logging.getLogger('rory.runtime')
+
+N = TypeVar('N', bound=type[Node])
+
+SWITCH_CONFIRMATIONS = 3
+"""Relayed messages that must also arrive live before a topic switches to its live reader."""
+
+
+@dataclass(frozen=True)
+class CheckpointSpec:
+    """What ``rory-instrument`` wrote into the decorator."""
+
+    vars: tuple[str, ...]
+    manifest: str
+
+
+@dataclass(frozen=True)
+class RuntimeEnv:
+    """How the supervisor configured this process."""
+
+    node_id: str
+    store: Path
+    incarnation: int
+    method: Method
+    mode: Mode
+    interval: float
+
+    @classmethod
+    def from_environ(cls, environ: dict[str, str] | None = None) -> RuntimeEnv | None:
+        """Read the supervisor's settings, or None when the process is not supervised.
+
+        Raises:
+            RoryError: RORY_NODE is set but the other settings are missing or invalid.
+        """
+        env = dict(os.environ if environ is None else environ)
+        node_id = env.get(ENV_NODE)
+        if not node_id:
+            return None
+        try:
+            return cls(
+                node_id=node_id,
+                store=Path(env[ENV_STORE]),
+                incarnation=int(env[ENV_INCARNATION]),
+                method=Method(env[ENV_METHOD]),
+                mode=Mode(env[ENV_MODE]),
+                interval=float(env.get(ENV_INTERVAL, '2.0')),
+            )
+        except (KeyError, ValueError) as err:
+            raise RoryError(f'{ENV_NODE} is set but the environment is bad: {err}') from None
+
+
+def checkpointed(*, vars: tuple[str, ...], manifest: str) -> Callable[[N], N]:
+    """Class decorator that ``rory-instrument`` puts on a node class.
+
+    Args:
+        vars: Names of the ``self.<name>`` attributes that make up the node's state.
+        manifest: Hash of the instrumented code version; a checkpoint written under another
+            manifest is refused.
+
+    Returns:
+        The decorator. Unsupervised, it returns the class unchanged.
+    """
+    spec = CheckpointSpec(tuple(vars), manifest)
+
+    def decorate(cls: N) -> N:
+        env = RuntimeEnv.from_environ()
+        if env is None:
+            return cls
+        _install(cls, spec, env)
+        return cls
+
+    return decorate
+
+
+# ---------------------------------------------------------------------------------------------
+# Class patching. Only the entity factories and __init__ are wrapped; the rest of the class is
+# left alone.
+
+
+def _install(cls: type[Node], spec: CheckpointSpec, env: RuntimeEnv) -> None:
+    if cls.__dict__.get('__rory_installed__'):
+        return
+    cls.__rory_spec__ = spec  # type: ignore[attr-defined]
+    cls.__rory_installed__ = True  # type: ignore[attr-defined]
+    original_init = cls.__init__
+
+    @functools.wraps(original_init)
+    def __init__(self: Node, *args: Any, **kwargs: Any) -> None:
+        runtime = NodeRuntime.of(self, env)
+        runtime.init_depth += 1
+        try:
+            original_init(self, *args, **kwargs)
+        finally:
+            runtime.init_depth -= 1
+        if runtime.init_depth == 0:
+            # Construction is over (also for subclasses that call our __init__ via super()).
+            runtime.on_constructed(self)
+
+    cls.__init__ = __init__  # type: ignore[method-assign]
+
+    factories: tuple[tuple[str, Callable[[NodeRuntime, Any], None]], ...] = (
+        ('create_subscription', NodeRuntime.adopt_subscription),
+        ('create_publisher', NodeRuntime.adopt_publisher),
+        ('create_timer', NodeRuntime.adopt_timer),
+    )
+    for name, adopt in factories:
+        setattr(cls, name, _wrap_factory(getattr(cls, name), adopt, env))
+
+
+def _wrap_factory(
+    factory: Callable[..., Any], adopt: Callable[[NodeRuntime, Any], None], env: RuntimeEnv
+) -> Callable[..., Any]:
+    @functools.wraps(factory)
+    def create(self: Node, *args: Any, **kwargs: Any) -> Any:
+        entity = factory(self, *args, **kwargs)
+        # rclpy creates its own entities through the same methods (the /parameter_events
+        # publisher, the /clock subscription, Rate timers); those are not the node's inputs.
+        caller = sys._getframe(1).f_globals.get('__name__', '')
+        if not caller.startswith('rclpy.'):
+            adopt(NodeRuntime.of(self, env), entity)
+        return entity
+
+    return create
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+class _Window:
+    """Identities of the last messages applied on one topic."""
+
+    __slots__ = ('_order', '_set')
+
+    def __init__(self, size: int, items: Iterable[MessageId] = ()) -> None:
+        self._order: deque[MessageId] = deque(maxlen=size)
+        self._set: set[MessageId] = set()
+        for item in items:
+            self.add(item)
+
+    def __contains__(self, ident: MessageId) -> bool:
+        return ident in self._set
+
+    def add(self, ident: MessageId) -> None:
+        if len(self._order) == self._order.maxlen:
+            self._set.discard(self._order[0])
+        self._order.append(ident)
+        self._set.add(ident)
+
+    def snapshot(self) -> list[tuple[int, int]]:
+        return list(self._order)
+
+
+@dataclass
+class _Input:
+    """One subscription of the user's node."""
+
+    sub: Subscription
+    topic: str
+    msg_type: type
+    type_name: str
+    callback: Callable[..., Any]
+    with_info: bool
+    user_raw: bool
+    spec: InputSpec
+
+
+@dataclass
+class _Handover:
+    """Per-topic evidence that the live reader carries what the relay carries (after S4)."""
+
+    live_seen: set[MessageId] = field(default_factory=set)
+    relayed: deque[MessageId] = field(default_factory=lambda: deque(maxlen=64))
+    confirmed: int = 0
+
+
+class _IoWorker:
+    """Runs checkpoint and segment I/O in order, off the node's executor thread.
+
+    Only the snapshot needs the node paused; closing a segment (its MCAP summary and
+    metadata.yaml), writing a checkpoint with fsync and pruning can follow in the background.
+    Order is what keeps them safe: segments are pruned only after the newer checkpoint is
+    durable, so a crash at any point leaves a checkpoint whose segments are all there.
+    """
+
+    def __init__(self) -> None:
+        self._jobs: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name='rory-io', daemon=True)
+        self._thread.start()
+
+    def submit(self, job: Callable[[], None]) -> None:
+        self._jobs.put(job)
+
+    def _run(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            try:
+                job()
+            except Exception:
+                _logger.exception('[rory] background I/O failed')
+
+    def drain(self, timeout: float = 5.0) -> None:
+        """Finish queued jobs and stop."""
+        self._jobs.put(None)
+        self._thread.join(timeout)
+
+
+def _process_start_ns() -> int | None:
+    """Wall-clock start of this process (for the restart part of recovery time)."""
+    try:
+        ticks = int(Path('/proc/self/stat').read_text().rsplit(')', 1)[1].split()[19])
+        boot = next(
+            int(line.split()[1])
+            for line in Path('/proc/stat').read_text().splitlines()
+            if line.startswith('btime')
+        )
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+    return (boot * 1_000_000_000) + ticks * 1_000_000_000 // os.sysconf('SC_CLK_TCK')
+
+
+def _wants_info(callback: Callable[..., Any]) -> bool:
+    # The same test rclpy's Subscription.callback setter applies.
+    try:
+        inspect.signature(callback).bind(object())
+        return False
+    except TypeError:
+        pass
+    try:
+        inspect.signature(callback).bind(object(), object())
+        return True
+    except TypeError:
+        return False
+
+
+class NodeRuntime:
+    """RORY's state inside one supervised node."""
+
+    @classmethod
+    def of(cls, node: Node, env: RuntimeEnv) -> NodeRuntime:
+        """The runtime of a node, created on first use (before Node.__init__ has run)."""
+        runtime: NodeRuntime | None = node.__dict__.get('_rory_runtime')
+        if runtime is None:
+            runtime = cls(type(node).__rory_spec__, env)  # type: ignore[attr-defined]
+            node.__dict__['_rory_runtime'] = runtime
+        return runtime
+
+    def __init__(self, spec: CheckpointSpec, env: RuntimeEnv) -> None:
+        self.spec = spec
+        self.env = env
+        self.method = env.method
+        self.init_depth = 0
+        self.node: Node | None = None
+        self.lock = threading.RLock()
+        self.released = False
+        self.inputs: dict[str, _Input] = {}
+        self.windows: dict[str, _Window] = {}
+        self.shadow_topics: set[str] = set()
+        self.pending_live: dict[str, list[tuple[MessageId, bytes, dict[str, Any]]]] = {}
+        self.handover: dict[str, _Handover] = {}
+        self.orphans: dict[str, list[protocol.Msg]] = {}
+        self.held_timers: list[Timer] = []
+        self.publishers: list[Publisher] = []
+        self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0}
+        self.checkpoints = CheckpointStore(env.store, env.node_id)
+        self.segments = SegmentStore(env.store, env.node_id)
+        self.writer: SegmentWriter | None = None
+        self.next_segment = 1
+        self.previous_cut: int | None = None
+        self._next_seq = 0  # set at start-up from the store
+        self.reported_errors: set[str] = set()
+        self._group: MutuallyExclusiveCallbackGroup | None = None
+        self._status_pub: Publisher | None = None
+        self._startup_timer: Timer | None = None
+        self._started = False
+        self._io = _IoWorker()
+        atexit.register(self.close)
+
+    # -- adoption of the user's entities ----------------------------------------------------
+
+    def adopt_subscription(self, sub: Subscription) -> None:
+        """Take over a user subscription: raw delivery through the runtime."""
+        topic = sub.topic_name
+        if topic in self.inputs:
+            if self.inputs[topic].sub is sub:
+                return
+            raise RoryError(
+                f'node subscribes twice to {topic}; RORY records one subscription per topic'
+            )
+        callback = sub.callback
+        if inspect.iscoroutinefunction(callback):
+            raise RoryError(f'async subscription callbacks are not supported yet ({topic})')
+        msg_type = cast(type, sub.msg_type)
+        type_name = type_name_of(msg_type)
+        inp = _Input(
+            sub=sub,
+            topic=topic,
+            msg_type=msg_type,
+            type_name=type_name,
+            callback=callback,
+            with_info=_wants_info(callback),
+            user_raw=bool(sub.raw),
+            spec=InputSpec.from_qos(topic, type_name, sub.qos_profile),
+        )
+        self.inputs[topic] = inp
+        self.windows.setdefault(topic, _Window(protocol.window_size(inp.spec)))
+        self.pending_live.setdefault(topic, [])
+        if self.env.mode == Mode.RECOVER and self.method.logs and not self.released:
+            self.shadow_topics.add(topic)
+        sub.raw = True
+        sub.callback = functools.partial(self._on_live, inp)
+        for msg in self.orphans.pop(topic, []):
+            self._from_shadow(msg)
+
+    def adopt_publisher(self, pub: Publisher) -> None:
+        """Mute a user publisher while the node is isolated."""
+        if pub in self.publishers:
+            return
+        self.publishers.append(pub)
+        publish = pub.publish
+
+        def gated_publish(msg: Any) -> None:
+            if self.released:
+                publish(msg)
+            else:
+                self.stats['muted'] += 1
+
+        pub.publish = gated_publish  # type: ignore[method-assign]
+
+    def adopt_timer(self, timer: Timer) -> None:
+        """Hold a user timer until release, and run its callback under the runtime lock."""
+        if any(timer is held for held in self.held_timers) or getattr(timer, '_rory', False):
+            return
+        callback = timer.callback
+        if inspect.iscoroutinefunction(callback):
+            raise RoryError('async timer callbacks are not supported yet')
+
+        def locked_tick() -> Any:
+            if not self.released:
+                return None
+            with self.lock:
+                return callback()
+
+        timer.callback = locked_tick
+        timer._rory = True  # type: ignore[attr-defined]
+        if not self.released and not timer.is_canceled():
+            self.held_timers.append(timer)
+            timer.cancel()
+
+    # -- start-up -------------------------------------------------------------------------------
+
+    def on_constructed(self, node: Node) -> None:
+        """The node object is complete: create RORY's own entities and schedule start-up."""
+        if self._started:
+            return
+        self._started = True
+        self.node = node
+        self._group = MutuallyExclusiveCallbackGroup()
+        self._status_pub = Node.create_publisher(
+            node, String, protocol.status_topic(self.env.node_id), protocol.STATUS_QOS
+        )
+        if self.method.logs:
+            # Loading the typestore costs ~0.1 s; do it before the first message needs it.
+            threading.Thread(target=default_typestore, daemon=True).start()
+        # The first callback the executor runs is this one, so restoring here happens before
+        # any user callback (user timers are held and user messages buffered until release).
+        self._startup_timer = Node.create_timer(
+            node, 0.0, self._startup, callback_group=self._group
+        )
+
+    def _startup(self) -> None:
+        assert self.node is not None
+        if self._startup_timer is not None:
+            self._startup_timer.cancel()
+            self.node.destroy_timer(self._startup_timer)
+            self._startup_timer = None
+        began = time.perf_counter()
+        restored: dict[str, Any] | None = None
+        refused: list[str] = []
+        if self.env.mode == Mode.RECOVER and self.method.checkpoints:
+            restored = self._restore(refused)
+        restore_ms = (time.perf_counter() - began) * 1000.0
+        self._next_seq = self.checkpoints.next_seq()
+        if self.method.logs:
+            on_envelope: Any = self._on_envelope  # rclpy's annotation omits (msg, info)
+            Node.create_subscription(
+                self.node,
+                UInt8MultiArray,
+                protocol.replay_topic(self.env.node_id),
+                on_envelope,
+                protocol.REPLAY_QOS,
+                raw=True,
+                callback_group=self._group,
+            )
+        self._status(
+            StatusKind.HELLO,
+            mode=self.env.mode.value,
+            method=self.method.value,
+            pid=os.getpid(),
+            manifest=self.spec.manifest,
+            inputs=[inp.spec.to_json() for inp in self.inputs.values()],
+            restored=restored,
+            refused=refused,
+            restore_ms=restore_ms,
+            process_start_ns=_process_start_ns(),
+        )
+        if not self.method.logs:
+            # restart and checkpoint have nothing to replay: release right away.
+            self._release(self.segments.next_number())
+
+    def _restore(self, refused: list[str]) -> dict[str, Any] | None:
+        """S3 restore: load the newest checkpoint that passes every check into the node."""
+        assert self.node is not None
+
+        def on_refused(err: CheckpointError) -> None:
+            refused.append(str(err))
+            self._error(f'checkpoint refused: {err}')
+            self.checkpoints.quarantine(err.path)
+
+        while True:
+            ckpt = self.checkpoints.latest_valid(
+                expect_manifest=self.spec.manifest, on_refused=on_refused
+            )
+            if ckpt is None:
+                return None
+            try:
+                values = codec.decode_vars(ckpt.vars_blob)
+                if set(values) != set(self.spec.vars):
+                    raise CodecError(
+                        f'holds variables {sorted(values)}, the node has {sorted(self.spec.vars)}'
+                    )
+            except CodecError as err:
+                # Checksum was fine but the payload is not ours: set it aside, try the older one.
+                on_refused(CheckpointError(self.checkpoints.path(ckpt.seq), str(err)))
+                continue
+            with self.lock:
+                for name, value in values.items():
+                    setattr(self.node, name, value)
+                for topic, idents in ckpt.windows.items():
+                    inp = self.inputs.get(topic)
+                    size = protocol.window_size(inp.spec) if inp else len(idents) + 64
+                    self.windows[topic] = _Window(size, ((s, q) for s, q in idents))
+                self.previous_cut = ckpt.cut
+            return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns}
+
+    # -- the shadow topic ---------------------------------------------------------------------
+
+    def _on_envelope(self, raw: bytes, _info: dict[str, Any]) -> None:
+        try:
+            envelope = protocol.unpack(raw)
+        except ProtocolError as err:
+            self._error(f'malformed envelope on {protocol.replay_topic(self.env.node_id)}: {err}')
+            return
+        if envelope.incarnation != self.env.incarnation:
+            return  # meant for an earlier process of this node
+        if isinstance(envelope, protocol.Sync):
+            counts = {topic: inp.sub.get_publisher_count() for topic, inp in self.inputs.items()}
+            self._status(StatusKind.SYNCED, nonce=envelope.nonce, live_publishers=counts)
+        elif isinstance(envelope, protocol.Msg):
+            self._from_shadow(envelope)
+        else:
+            self._release(envelope.next_segment)
+
+    def _from_shadow(self, msg: protocol.Msg) -> None:
+        inp = self.inputs.get(msg.topic)
+        if inp is None:
+            # The subscription does not exist yet (created later by a replayed callback?).
+            self.orphans.setdefault(msg.topic, []).append(msg)
+            return
+        if msg.topic not in self.shadow_topics:
+            return  # already switched to its live reader, which carries this message too
+        relayed = bool(msg.flags & FLAG_RELAY)
+        if relayed:
+            self._note_relayed(msg.topic, msg.ident)
+        if msg.ident in self.windows[msg.topic]:
+            self.stats['duplicates'] += 1
+        else:
+            info = {
+                'source_timestamp': msg.source_ns,
+                'received_timestamp': msg.recv_ns,
+                'publication_sequence_number': msg.seq,
+                'reception_sequence_number': None,
+            }
+            # Before release every replayed message is already in a sealed segment; relayed
+            # ones are not, so the node logs them as it would a live message.
+            self._apply(inp, msg.data, info, msg.ident, log=relayed)
+            self.stats['replayed'] += 1
+        if relayed:
+            self._maybe_switch(msg.topic)
+
+    # -- live messages ------------------------------------------------------------------------
+
+    def _on_live(self, inp: _Input, raw: bytes, info: dict[str, Any]) -> None:
+        ident = protocol.message_id(info)
+        if not self.released or inp.topic in self.shadow_topics:
+            self.pending_live[inp.topic].append((ident, raw, info))
+            if self.released:
+                self.handover.setdefault(inp.topic, _Handover()).live_seen.add(ident)
+                self._maybe_switch(inp.topic)
+            return
+        if ident in self.windows[inp.topic]:
+            # e.g. a transient-local publisher re-sending what the checkpoint already holds
+            self.stats['duplicates'] += 1
+            return
+        self._apply(inp, raw, info, ident, log=True)
+
+    def _apply(
+        self, inp: _Input, raw: bytes, info: dict[str, Any], ident: MessageId, *, log: bool
+    ) -> None:
+        msg = raw if inp.user_raw else deserialize_message(raw, inp.msg_type)
+        with self.lock:
+            if log and self.method.logs:
+                self._log(inp, raw, info, ident)
+            if inp.with_info:
+                inp.callback(msg, info)
+            else:
+                inp.callback(msg)
+            self.windows[inp.topic].add(ident)
+            self.stats['applied'] += 1
+
+    def _log(self, inp: _Input, raw: bytes, info: dict[str, Any], ident: MessageId) -> None:
+        if self.writer is None:
+            self.writer = self.segments.open(self.next_segment)
+            self.next_segment += 1
+        try:
+            self.writer.write(
+                inp.topic, inp.type_name, int(info['received_timestamp']), ident[0], ident[1], raw
+            )
+        except LogError as err:
+            self._error(f'cannot log a message of {inp.topic}: {err}')
+
+    # -- release and handover (S4) --------------------------------------------------------------
+
+    def _release(self, next_segment: int) -> None:
+        assert self.node is not None
+        if self.released:
+            return
+        with self.lock:
+            self.released = True
+            self.next_segment = max(self.next_segment, next_segment)
+            for timer in self.held_timers:
+                timer.reset()
+            self.held_timers.clear()
+            if self.method.checkpoints or self.method.logs:
+                tick = self._checkpoint_tick if self.method.checkpoints else self._rotate_tick
+                Node.create_timer(self.node, self.env.interval, tick, callback_group=self._group)
+            # Topics not taken from the shadow topic start with what their live reader holds.
+            live_topics = [t for t in self.inputs if t not in self.shadow_topics]
+            self._drain_pending(live_topics)
+        self._status(StatusKind.RELEASED, **self.stats)
+
+    def _drain_pending(self, topics: Iterable[str]) -> None:
+        backlog = [
+            (info['received_timestamp'], self.inputs[topic], ident, raw, info)
+            for topic in topics
+            for ident, raw, info in self.pending_live[topic]
+        ]
+        for topic in topics:
+            self.pending_live[topic] = []
+        backlog.sort(key=lambda item: item[0])
+        for _, inp, ident, raw, info in backlog:
+            if ident in self.windows[inp.topic]:
+                self.stats['duplicates'] += 1
+            else:
+                self._apply(inp, raw, info, ident, log=True)
+
+    def _note_relayed(self, topic: str, ident: MessageId) -> None:
+        state = self.handover.setdefault(topic, _Handover())
+        state.relayed.append(ident)
+
+    def _maybe_switch(self, topic: str) -> None:
+        """Switch a topic to its live reader once that reader is seen to carry the relay.
+
+        Evidence: SWITCH_CONFIRMATIONS relayed messages also arrived live, the latest relayed
+        one among them. Publishers deliver reliably and in order, so from that message on the
+        live reader has everything and the relay has delivered everything before it.
+        """
+        state = self.handover.get(topic)
+        if state is None or not state.relayed or topic not in self.shadow_topics:
+            return
+        confirmed = sum(1 for ident in state.relayed if ident in state.live_seen)
+        if confirmed < SWITCH_CONFIRMATIONS or state.relayed[-1] not in state.live_seen:
+            return
+        with self.lock:
+            self.shadow_topics.discard(topic)
+            self._drain_pending([topic])
+        self.handover.pop(topic, None)
+        self._status(StatusKind.SWITCHED, topic=topic)
+
+    # -- checkpoints --------------------------------------------------------------------------
+
+    def _rotate_segment(self) -> tuple[int, SegmentWriter | None]:
+        """Start a new segment at the next message.
+
+        Returns:
+            The number of the last segment absorbed so far, and the detached writer of the
+            current segment, still to be closed (its messages are already in the OS).
+        """
+        writer, self.writer = self.writer, None
+        return self.next_segment - 1, writer
+
+    def _rotate_tick(self) -> None:
+        # replay method: no checkpoints, but keep segments bounded in size.
+        with self.lock:
+            _, writer = self._rotate_segment()
+        if writer is not None:
+            self._io.submit(writer.close)
+
+    def _checkpoint_tick(self) -> None:
+        assert self.node is not None
+        began = time.perf_counter()
+        with self.lock:
+            # The snapshot: the only part that needs the node paused between two callbacks.
+            try:
+                values = {name: self._read_var(name) for name in self.spec.vars}
+                blob = codec.encode_vars(values)
+            except CodecError as err:
+                self._error(f'checkpoint skipped: {err}')
+                return
+            cut, writer = self._rotate_segment() if self.method.logs else (None, None)
+            windows = {topic: w.snapshot() for topic, w in self.windows.items()}
+            prune_through, self.previous_cut = self.previous_cut, cut
+            seq, self._next_seq = self._next_seq, self._next_seq + 1
+        stall_ms = (time.perf_counter() - began) * 1000.0
+        ckpt = Checkpoint(
+            node=self.env.node_id,
+            seq=seq,
+            incarnation=self.env.incarnation,
+            created_ns=time.time_ns(),
+            manifest=self.spec.manifest,
+            method=self.method.value,
+            cut=cut,
+            windows=windows,
+            vars_blob=blob,
+        )
+
+        def persist() -> None:
+            if writer is not None:
+                writer.close()
+            try:
+                self.checkpoints.write(ckpt)
+            except (OSError, CheckpointError) as err:
+                self._error(f'checkpoint {ckpt.seq} not written: {err}')
+                return
+            # The older checkpoint kept needs the segments after its cut; older ones go.
+            if self.method.logs and prune_through is not None:
+                self.segments.drop_through(prune_through)
+            self._status(
+                StatusKind.CHECKPOINT,
+                seq=ckpt.seq,
+                cut=cut,
+                bytes=len(blob),
+                stall_ms=stall_ms,
+                total_ms=(time.perf_counter() - began) * 1000.0,
+            )
+
+        self._io.submit(persist)
+
+    def _read_var(self, name: str) -> Any:
+        assert self.node is not None
+        try:
+            return getattr(self.node, name)
+        except AttributeError:
+            raise CodecError(f'variable {name!r} is not set on the node') from None
+
+    # -- reporting ----------------------------------------------------------------------------
+
+    def _status(self, kind: StatusKind, **fields: Any) -> None:
+        if self._status_pub is None:
+            return
+        text = protocol.encode_status(
+            kind, self.env.node_id, self.env.incarnation, sent_ns=time.time_ns(), **fields
+        )
+        self._status_pub.publish(String(data=text))
+
+    def _error(self, message: str) -> None:
+        if message in self.reported_errors:
+            return
+        self.reported_errors.add(message)
+        if self.node is not None:
+            self.node.get_logger().error(f'[rory] {message}')
+        else:
+            _logger.error('[rory] %s', message)
+        self._status(StatusKind.ERROR, message=message)
+
+    def close(self) -> None:
+        """Finish background I/O and seal the open segment, so a clean exit leaves complete
+        bags."""
+        self._io.drain()
+        with self.lock:
+            if self.writer is not None:
+                with contextlib.suppress(LogError):
+                    self.writer.close()
+                self.writer = None

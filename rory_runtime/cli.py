@@ -1,0 +1,51 @@
+"""The ``rory`` command: ``rory supervise CONFIG.yaml``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from .errors import ConfigError, RoryError
+
+
+def _supervise(args: argparse.Namespace) -> int:
+    from .supervisor.config import load_config
+    from .supervisor.supervisor import Supervisor
+
+    config = load_config(args.config)
+    return Supervisor(config).run()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``rory`` console script."""
+    parser = argparse.ArgumentParser(
+        prog='rory', description='Crash recovery with state for ROS 2 nodes.'
+    )
+    parser.add_argument('-v', '--verbose', action='store_true', help='debug logging')
+    sub = parser.add_subparsers(dest='command', required=True)
+    supervise = sub.add_parser('supervise', help='run nodes and recover them when they crash')
+    supervise.add_argument('config', help='supervisor configuration (YAML)')
+    supervise.set_defaults(run=_supervise)
+    args = parser.parse_args(argv)
+
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format='%(asctime)s.%(msecs)03d %(message)s',
+        datefmt='%H:%M:%S',
+        stream=sys.stdout,
+    )
+    try:
+        code: int = args.run(args)
+    except ConfigError as err:
+        print(f'rory: error: {err}', file=sys.stderr)
+        return 2
+    except RoryError as err:
+        print(f'rory: error: {err}', file=sys.stderr)
+        return 1
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())

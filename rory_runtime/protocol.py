@@ -1,0 +1,383 @@
+"""Everything the node-side runtime and the supervisor agree on, in one place.
+
+The two halves of RORY meet only here: environment variables the supervisor sets for a node it
+spawns, the names and QoS of the two topics between them, the status messages a node sends, and
+the binary envelopes the supervisor sends back.
+
+Topics (``<node>`` is the node's id from the supervisor configuration):
+
+``/rory/<node>/status``  node -> supervisor, ``std_msgs/msg/String`` holding one JSON object.
+    Reliable and transient-local, so a status published before the supervisor's reader matched
+    is still delivered (a restarted process is discovered late; see FACTS.md).
+``/rory/<node>/replay``  supervisor -> node, ``std_msgs/msg/UInt8MultiArray`` carrying an
+    envelope. This is the node's *shadow topic*: recorded messages of every input topic travel
+    on it, multiplexed, so that the node receives them in exactly the recorded order (DDS keeps
+    no order across topics, one shadow topic per input would not). Reliable, volatile, keep-all.
+
+Envelope layout (little endian), inside the ``data`` field of the UInt8MultiArray::
+
+    magic 'RY' | version u8 | kind u8 | incarnation u32 | body
+
+    SYNC     nonce u64                      path check: the node answers with a SYNCED status
+    MSG      flags u8 | recv_ns i64 | source_ns i64 | seq u32 | topic_len u16 | topic | cdr
+    RELEASE  next_segment u64 | delivered u64
+
+A MSG with ``FLAG_RELAY`` was recorded after RELEASE: the node logs it when it applies it,
+because it is not in any sealed log segment.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import re
+import struct
+from dataclasses import dataclass
+from typing import Any, Final
+
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+
+from .errors import ProtocolError
+
+# ---------------------------------------------------------------------------------------------
+# Environment the supervisor sets for a node it runs. Without ENV_NODE the runtime stays inert
+# and the instrumented program behaves exactly like the original.
+ENV_NODE: Final = 'RORY_NODE'
+ENV_STORE: Final = 'RORY_STORE'
+ENV_INCARNATION: Final = 'RORY_INCARNATION'
+ENV_METHOD: Final = 'RORY_METHOD'
+ENV_MODE: Final = 'RORY_MODE'
+ENV_INTERVAL: Final = 'RORY_CHECKPOINT_INTERVAL'
+
+NODE_ID_RE: Final = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+
+# Publisher sequence numbers are stored in MCAP's u32 ``sequence`` field; identities use the
+# same truncation everywhere so that a live message and its logged copy compare equal.
+SEQ_MASK: Final = 0xFFFFFFFF
+
+MessageId = tuple[int, int]
+"""A message's identity: (publisher source timestamp ns, publisher sequence number & SEQ_MASK)."""
+
+
+def message_id(info: dict[str, Any]) -> MessageId:
+    """Identity of a received message from rclpy's message info."""
+    return (int(info['source_timestamp']), int(info['publication_sequence_number']) & SEQ_MASK)
+
+
+class Method(enum.StrEnum):
+    """Recovery method; the three baselines share the supervisor with RORY."""
+
+    RORY = 'rory'  # checkpoint + replay of the messages after its cut
+    RESTART = 'restart'  # respawn with no state (what ROS's respawn does)
+    CHECKPOINT = 'checkpoint'  # restore the last checkpoint, no replay
+    REPLAY = 'replay'  # no checkpoints; replay every message since start
+
+    @property
+    def checkpoints(self) -> bool:
+        """Whether the node takes checkpoints."""
+        return self in (Method.RORY, Method.CHECKPOINT)
+
+    @property
+    def logs(self) -> bool:
+        """Whether received messages are logged and replayed."""
+        return self in (Method.RORY, Method.REPLAY)
+
+
+class Mode(enum.StrEnum):
+    """How a node process starts."""
+
+    FRESH = 'fresh'  # first start: nothing to restore
+    RECOVER = 'recover'  # restart after a crash: restore, replay, then release
+
+
+class ReplayPace(enum.StrEnum):
+    """How recorded messages are fed back."""
+
+    PACED = 'paced'  # at the recorded gaps, as in the paper
+    FAST = 'fast'  # as fast as the node takes them
+
+
+def status_topic(node_id: str) -> str:
+    """Topic a node's runtime reports on."""
+    return f'/rory/{node_id}/status'
+
+
+def replay_topic(node_id: str) -> str:
+    """The node's shadow topic."""
+    return f'/rory/{node_id}/replay'
+
+
+STATUS_QOS: Final = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=64,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+# Keep-all: a reliable writer then resends whatever a late-matching reader has not
+# acknowledged, and nothing is dropped however far the node falls behind.
+REPLAY_QOS: Final = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# Status messages, node -> supervisor.
+
+
+class StatusKind(enum.StrEnum):
+    """Kinds of status a node reports."""
+
+    HELLO = 'hello'  # started; carries inputs, restore result
+    SYNCED = 'synced'  # answered a SYNC: the shadow path works both ways
+    RELEASED = 'released'  # outputs unmuted, timers running
+    CHECKPOINT = 'checkpoint'  # a checkpoint was written
+    SWITCHED = 'switched'  # a topic is now taken from the live subscription
+    ERROR = 'error'  # something the operator must know (e.g. a variable that cannot be saved)
+
+
+def encode_status(kind: StatusKind, node_id: str, incarnation: int, **fields: Any) -> str:
+    """JSON text of a status message."""
+    return json.dumps(
+        {'kind': kind.value, 'node': node_id, 'incarnation': incarnation, **fields},
+        separators=(',', ':'),
+        sort_keys=True,
+    )
+
+
+def decode_status(text: str) -> dict[str, Any]:
+    """Parse a status message.
+
+    Raises:
+        ProtocolError: Not a JSON object with kind, node and incarnation.
+    """
+    try:
+        obj = json.loads(text)
+    except ValueError as err:
+        raise ProtocolError(f'status is not JSON: {err}') from None
+    if not isinstance(obj, dict):
+        raise ProtocolError('status is not a JSON object')
+    kind = obj.get('kind')
+    if kind not in {k.value for k in StatusKind}:
+        raise ProtocolError(f'status has unknown kind {kind!r}')
+    if not isinstance(obj.get('node'), str) or not isinstance(obj.get('incarnation'), int):
+        raise ProtocolError('status lacks node or incarnation')
+    return obj
+
+
+# ---------------------------------------------------------------------------------------------
+# Envelopes, supervisor -> node. Built and parsed by hand: the CDR of a UInt8MultiArray with
+# an empty layout is a fixed 16-byte prefix, so neither side pays for message conversion.
+
+_CDR_PREFIX = struct.Struct('<4sIII')  # encapsulation, dim count, data_offset, data length
+_CDR_LE = b'\x00\x01\x00\x00'
+_HEAD = struct.Struct('<2sBBI')
+_MAGIC = b'RY'
+_VERSION = 1
+_SYNC = struct.Struct('<Q')
+_MSG = struct.Struct('<BqqIH')
+_RELEASE = struct.Struct('<QQ')
+
+FLAG_RELAY: Final = 0x01
+
+
+class EnvelopeKind(enum.IntEnum):
+    """Kinds of envelope on a shadow topic."""
+
+    SYNC = 1
+    MSG = 2
+    RELEASE = 3
+
+
+@dataclass(frozen=True, slots=True)
+class Sync:
+    """Path check the node answers with a SYNCED status."""
+
+    incarnation: int
+    nonce: int
+
+
+@dataclass(frozen=True, slots=True)
+class Msg:
+    """One recorded message of an input topic."""
+
+    incarnation: int
+    flags: int
+    recv_ns: int
+    source_ns: int
+    seq: int
+    topic: str
+    data: bytes
+
+    @property
+    def ident(self) -> MessageId:
+        """The message's identity."""
+        return (self.source_ns, self.seq)
+
+
+@dataclass(frozen=True, slots=True)
+class Release:
+    """Everything recorded so far was sent: unmute, and log from ``next_segment`` on."""
+
+    incarnation: int
+    next_segment: int
+    delivered: int
+
+
+Envelope = Sync | Msg | Release
+
+
+def _wrap(payload: bytes) -> bytes:
+    return _CDR_PREFIX.pack(_CDR_LE, 0, 0, len(payload)) + payload
+
+
+def pack_sync(incarnation: int, nonce: int) -> bytes:
+    """Serialized UInt8MultiArray carrying a SYNC."""
+    head = _HEAD.pack(_MAGIC, _VERSION, EnvelopeKind.SYNC, incarnation)
+    return _wrap(head + _SYNC.pack(nonce))
+
+
+def pack_msg(
+    incarnation: int,
+    *,
+    topic: str,
+    recv_ns: int,
+    source_ns: int,
+    seq: int,
+    data: bytes,
+    flags: int = 0,
+) -> bytes:
+    """Serialized UInt8MultiArray carrying one recorded message."""
+    name = topic.encode()
+    head = _HEAD.pack(_MAGIC, _VERSION, EnvelopeKind.MSG, incarnation)
+    body = _MSG.pack(flags, recv_ns, source_ns, seq & SEQ_MASK, len(name))
+    return _wrap(b''.join((head, body, name, data)))
+
+
+def pack_release(incarnation: int, next_segment: int, delivered: int) -> bytes:
+    """Serialized UInt8MultiArray carrying a RELEASE."""
+    head = _HEAD.pack(_MAGIC, _VERSION, EnvelopeKind.RELEASE, incarnation)
+    return _wrap(head + _RELEASE.pack(next_segment, delivered))
+
+
+def unpack(raw: bytes) -> Envelope:
+    """Parse a serialized UInt8MultiArray envelope.
+
+    Raises:
+        ProtocolError: Anything that is not a well-formed envelope of this version.
+    """
+    view = memoryview(raw)
+    if len(view) < _CDR_PREFIX.size + _HEAD.size:
+        raise ProtocolError(f'envelope too short ({len(view)} bytes)')
+    encap, ndim, _, length = _CDR_PREFIX.unpack_from(view)
+    # DDS pads a serialized payload to a multiple of 4 bytes; the padding is not ours.
+    padding = len(view) - _CDR_PREFIX.size - length
+    if encap[:2] != _CDR_LE[:2] or ndim != 0 or not 0 <= padding <= 3:
+        raise ProtocolError('envelope is not a plain UInt8MultiArray')
+    view = view[: _CDR_PREFIX.size + length]
+    off = _CDR_PREFIX.size
+    magic, version, kind, incarnation = _HEAD.unpack_from(view, off)
+    if magic != _MAGIC or version != _VERSION:
+        raise ProtocolError(f'bad envelope magic/version {magic!r}/{version}')
+    off += _HEAD.size
+    try:
+        if kind == EnvelopeKind.SYNC:
+            (nonce,) = _SYNC.unpack_from(view, off)
+            return Sync(incarnation, nonce)
+        if kind == EnvelopeKind.MSG:
+            flags, recv_ns, source_ns, seq, name_len = _MSG.unpack_from(view, off)
+            off += _MSG.size
+            if off + name_len > len(view):
+                raise ProtocolError('envelope topic runs past its end')
+            topic = bytes(view[off : off + name_len]).decode()
+            return Msg(
+                incarnation, flags, recv_ns, source_ns, seq, topic, bytes(view[off + name_len :])
+            )
+        if kind == EnvelopeKind.RELEASE:
+            next_segment, delivered = _RELEASE.unpack_from(view, off)
+            return Release(incarnation, next_segment, delivered)
+    except (struct.error, UnicodeDecodeError) as err:
+        raise ProtocolError(f'malformed envelope of kind {kind}: {err}') from None
+    raise ProtocolError(f'unknown envelope kind {kind}')
+
+
+# ---------------------------------------------------------------------------------------------
+# Describing a node's inputs, so the supervisor can hold matching readers (the ring).
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """One subscription of a supervised node, as the supervisor needs to mirror it."""
+
+    topic: str
+    msgtype: str  # 'pkg/msg/Name'
+    reliable: bool
+    transient_local: bool
+    depth: int  # 0 for keep-all
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain dict for a status message."""
+        return {
+            'topic': self.topic,
+            'type': self.msgtype,
+            'reliable': self.reliable,
+            'transient_local': self.transient_local,
+            'depth': self.depth,
+        }
+
+    @classmethod
+    def from_json(cls, obj: Any) -> InputSpec:
+        """Parse the dict form.
+
+        Raises:
+            ProtocolError: Missing or ill-typed fields.
+        """
+        try:
+            spec = cls(
+                topic=str(obj['topic']),
+                msgtype=str(obj['type']),
+                reliable=bool(obj['reliable']),
+                transient_local=bool(obj['transient_local']),
+                depth=int(obj['depth']),
+            )
+        except (KeyError, TypeError, ValueError) as err:
+            raise ProtocolError(f'bad input description {obj!r}: {err}') from None
+        return spec
+
+    @classmethod
+    def from_qos(cls, topic: str, msgtype: str, qos: QoSProfile) -> InputSpec:
+        """Describe a subscription from its QoS profile."""
+        keep_all = qos.history == HistoryPolicy.KEEP_ALL
+        return cls(
+            topic=topic,
+            msgtype=msgtype,
+            reliable=qos.reliability != ReliabilityPolicy.BEST_EFFORT,
+            transient_local=qos.durability == DurabilityPolicy.TRANSIENT_LOCAL,
+            depth=0 if keep_all else int(qos.depth),
+        )
+
+
+def ring_depth(spec: InputSpec) -> int:
+    """How many recent messages of an input the supervisor's passive reader holds.
+
+    A crashed node can have left at most its own queue depth of received-but-unapplied
+    messages; the margin covers what arrives between the crash and the supervisor noticing.
+    """
+    return (spec.depth if spec.depth else 256) + 16
+
+
+def window_size(spec: InputSpec) -> int:
+    """How many applied message identities the node remembers per input.
+
+    Must exceed :func:`ring_depth`: everything the ring hands back after a crash is then
+    either in the node's window (absorbed, skipped) or new.
+    """
+    return ring_depth(spec) + 64

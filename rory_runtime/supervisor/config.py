@@ -1,0 +1,257 @@
+"""The supervisor's configuration file (``rory supervise CONFIG.yaml``).
+
+Example::
+
+    nodes:
+      - name: integrator
+        command: [python, out/integrator.py]   # run in this file's folder
+        method: rory              # rory | restart | checkpoint | replay
+        checkpoint_interval: 2.0  # seconds
+        replay: paced             # paced | fast
+    safe_state:                   # held from S1 until S4
+      - topic: /e_stop
+        type: std_msgs/msg/Bool
+        hold: {data: true}
+        release: {data: false}
+    store: .rory
+    dds: fast_rediscovery         # fast_rediscovery (default) | inherit
+
+Every error names the file and the field (``nodes[0].method``).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..errors import ConfigError
+from ..protocol import NODE_ID_RE, Method, ReplayPace
+
+_TYPE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*/msg/[A-Z][A-Za-z0-9]*$')
+_PYTHON_NAMES = frozenset({'python', 'python3', 'python3.11'})
+
+
+@dataclass(frozen=True)
+class Backoff:
+    """Restart pacing for crash loops."""
+
+    initial: float = 0.0  # delay before the first restart after a stable run
+    step: float = 0.5  # delay before the second consecutive restart, doubled after
+    maximum: float = 8.0
+    stable_after: float = 10.0  # a start that runs this long resets the count
+    max_restarts: int = 5  # consecutive crashes before giving up (FATAL)
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """One supervised node."""
+
+    name: str
+    command: tuple[str, ...]
+    method: Method = Method.RORY
+    checkpoint_interval: float = 2.0
+    replay: ReplayPace = ReplayPace.PACED
+    restart_on_clean_exit: bool = False
+    env: Mapping[str, str] = field(default_factory=dict)
+    backoff: Backoff = Backoff()
+
+
+@dataclass(frozen=True)
+class SafeAction:
+    """A message published at S1 and held until S4, then a release message."""
+
+    topic: str
+    msgtype: str
+    hold: Mapping[str, Any]
+    release: Mapping[str, Any] | None
+    rate: float | None  # republish the hold message at this rate (Hz); None: once, latched
+
+
+@dataclass(frozen=True)
+class SupervisorConfig:
+    """The whole file."""
+
+    path: Path
+    folder: Path
+    nodes: tuple[NodeConfig, ...]
+    safe_state: tuple[SafeAction, ...]
+    store: Path
+    dds: str = 'fast_rediscovery'
+
+
+class _Fields:
+    """Reads one mapping, remembering where it is for error messages."""
+
+    def __init__(self, path: Path, where: str, obj: Any, allowed: set[str]) -> None:
+        self.path = path
+        self.where = where
+        if not isinstance(obj, dict):
+            raise ConfigError(path, where or '(top level)', 'must be a mapping')
+        unknown = sorted(set(obj) - allowed)
+        if unknown:
+            allowed_list = ', '.join(sorted(allowed))
+            raise ConfigError(
+                path, self._at(str(unknown[0])), f'unknown field; allowed: {allowed_list}'
+            )
+        self.obj: dict[str, Any] = obj
+
+    def _at(self, key: str) -> str:
+        return f'{self.where}.{key}' if self.where else key
+
+    def error(self, key: str, reason: str) -> ConfigError:
+        return ConfigError(self.path, self._at(key), reason)
+
+    def required(self, key: str) -> Any:
+        if key not in self.obj:
+            raise self.error(key, 'is required')
+        return self.obj[key]
+
+    def number(
+        self, key: str, default: float, *, minimum: float = 0.0, strict: bool = True
+    ) -> float:
+        value = self.obj.get(key, default)
+        is_number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not is_number or not math.isfinite(value):
+            raise self.error(key, f'must be a number, got {value!r}')
+        if value < minimum or (strict and value == minimum):
+            raise self.error(key, f'must be {">" if strict else ">="} {minimum}, got {value}')
+        return float(value)
+
+    def boolean(self, key: str, default: bool) -> bool:
+        value = self.obj.get(key, default)
+        if not isinstance(value, bool):
+            raise self.error(key, f'must be true or false, got {value!r}')
+        return value
+
+
+def load_config(path: Path | str) -> SupervisorConfig:
+    """Read and validate a supervisor configuration file.
+
+    Raises:
+        ConfigError: The file is unreadable, not YAML, or a field is invalid.
+    """
+    path = Path(path).resolve()
+    try:
+        text = path.read_text(encoding='utf-8')
+    except OSError as err:
+        raise ConfigError(path, '(file)', f'cannot read: {err.strerror}') from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ConfigError(path, '(file)', f'not valid YAML: {err}') from None
+    top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds'})
+    folder = path.parent
+
+    nodes_raw = top.required('nodes')
+    if not isinstance(nodes_raw, list) or not nodes_raw:
+        raise top.error('nodes', 'must be a non-empty list')
+    nodes = tuple(_node(path, folder, f'nodes[{i}]', item) for i, item in enumerate(nodes_raw))
+    seen: set[str] = set()
+    for i, node in enumerate(nodes):
+        if node.name in seen:
+            raise ConfigError(path, f'nodes[{i}].name', f'duplicate node name {node.name!r}')
+        seen.add(node.name)
+
+    safe_raw = top.obj.get('safe_state') or []
+    if not isinstance(safe_raw, list):
+        raise top.error('safe_state', 'must be a list')
+    safe = tuple(_safe_action(path, f'safe_state[{i}]', item) for i, item in enumerate(safe_raw))
+
+    store_raw = top.obj.get('store', '.rory')
+    if not isinstance(store_raw, str) or not store_raw:
+        raise top.error('store', 'must be a path')
+    store = (folder / store_raw).resolve()
+    dds = top.obj.get('dds', 'fast_rediscovery')
+    if dds not in ('fast_rediscovery', 'inherit'):
+        raise top.error('dds', f'must be fast_rediscovery or inherit, got {dds!r}')
+    return SupervisorConfig(
+        path=path, folder=folder, nodes=nodes, safe_state=safe, store=store, dds=dds
+    )
+
+
+def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
+    f = _Fields(
+        path,
+        where,
+        obj,
+        {
+            'name', 'command', 'method', 'checkpoint_interval', 'replay',
+            'restart_on_clean_exit', 'env', 'backoff',
+        },
+    )
+    name = f.required('name')
+    if not isinstance(name, str) or not NODE_ID_RE.match(name):
+        raise f.error('name', f'must be a letter then letters, digits or _, got {name!r}')
+    command = f.required('command')
+    if isinstance(command, str):
+        command = command.split()
+    if not isinstance(command, list) or not command or not all(isinstance(a, str) for a in command):
+        raise f.error('command', 'must be a non-empty list of strings')
+    method = f.obj.get('method', Method.RORY.value)
+    if method not in {m.value for m in Method}:
+        methods = ', '.join(m.value for m in Method)
+        raise f.error('method', f'must be one of {methods}, got {method!r}')
+    replay = f.obj.get('replay', ReplayPace.PACED.value)
+    if replay not in {p.value for p in ReplayPace}:
+        raise f.error('replay', f'must be paced or fast, got {replay!r}')
+    env = f.obj.get('env') or {}
+    if not isinstance(env, dict) or not all(isinstance(k, str) for k in env):
+        raise f.error('env', 'must be a mapping of names to values')
+    return NodeConfig(
+        name=name,
+        command=_resolve_command(command),
+        method=Method(method),
+        checkpoint_interval=f.number('checkpoint_interval', 2.0),
+        replay=ReplayPace(replay),
+        restart_on_clean_exit=f.boolean('restart_on_clean_exit', False),
+        env={str(k): str(v) for k, v in env.items()},
+        backoff=_backoff(path, f'{where}.backoff', f.obj.get('backoff') or {}),
+    )
+
+
+def _resolve_command(command: list[str]) -> tuple[str, ...]:
+    # 'python' means the interpreter running the supervisor: it has rclpy and rory_runtime.
+    # Everything else is left as written; the node runs with the config file's folder as its
+    # working directory, so relative paths resolve against that folder.
+    first = sys.executable if command[0] in _PYTHON_NAMES else command[0]
+    return (first, *command[1:])
+
+
+def _backoff(path: Path, where: str, obj: Any) -> Backoff:
+    f = _Fields(path, where, obj, {'initial', 'step', 'maximum', 'stable_after', 'max_restarts'})
+    default = Backoff()
+    max_restarts = f.obj.get('max_restarts', default.max_restarts)
+    if isinstance(max_restarts, bool) or not isinstance(max_restarts, int) or max_restarts < 1:
+        raise f.error('max_restarts', f'must be a positive integer, got {max_restarts!r}')
+    return Backoff(
+        initial=f.number('initial', default.initial, strict=False),
+        step=f.number('step', default.step, strict=False),
+        maximum=f.number('maximum', default.maximum, strict=False),
+        stable_after=f.number('stable_after', default.stable_after),
+        max_restarts=max_restarts,
+    )
+
+
+def _safe_action(path: Path, where: str, obj: Any) -> SafeAction:
+    f = _Fields(path, where, obj, {'topic', 'type', 'hold', 'release', 'rate'})
+    topic = f.required('topic')
+    if not isinstance(topic, str) or not topic.startswith('/'):
+        raise f.error('topic', f'must be an absolute topic name, got {topic!r}')
+    msgtype = f.required('type')
+    if not isinstance(msgtype, str) or not _TYPE_RE.match(msgtype):
+        raise f.error('type', f'must look like pkg/msg/Name, got {msgtype!r}')
+    hold = f.required('hold')
+    if not isinstance(hold, dict):
+        raise f.error('hold', 'must be a mapping of message fields')
+    release = f.obj.get('release')
+    if release is not None and not isinstance(release, dict):
+        raise f.error('release', 'must be a mapping of message fields')
+    rate = None if f.obj.get('rate') is None else f.number('rate', 0.0)
+    return SafeAction(topic=topic, msgtype=msgtype, hold=hold, release=release, rate=rate)

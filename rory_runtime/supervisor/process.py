@@ -1,0 +1,137 @@
+"""Processes: spawning, signalling and reaping supervised nodes, and restart pacing.
+
+OS calls sit behind the :class:`Launcher` and :class:`Child` protocols so that unit tests can
+drive the supervisor's transitions with fakes; :class:`PopenLauncher` is the real one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import os
+import signal
+import subprocess
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Protocol
+
+from .config import Backoff
+
+_PR_SET_PDEATHSIG = 1
+
+
+class Child(Protocol):
+    """A running node process."""
+
+    @property
+    def pid(self) -> int:
+        """Process id."""
+        ...
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Block until the process ends; its return code (negative: killed by that signal)."""
+        ...
+
+    def poll(self) -> int | None:
+        """Return code if the process has ended, else None."""
+        ...
+
+    def send_signal(self, sig: int) -> None:
+        """Deliver a signal; no error if the process is already gone."""
+        ...
+
+
+class Launcher(Protocol):
+    """Starts node processes."""
+
+    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> Child:
+        """Start ``argv`` with exactly ``env`` in ``cwd``."""
+        ...
+
+
+def _die_with_supervisor() -> None:
+    # A node must not outlive its supervisor unsupervised: a restarted supervisor recovers it
+    # from the store instead. Runs in the child between fork and exec.
+    libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
+    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() == 1:  # the supervisor died before prctl took effect
+        os._exit(1)
+
+
+class _PopenChild:
+    def __init__(self, proc: subprocess.Popen[bytes]) -> None:
+        self._proc = proc
+
+    @property
+    def pid(self) -> int:
+        return self._proc.pid
+
+    def wait(self, timeout: float | None = None) -> int:
+        return self._proc.wait(timeout)
+
+    def poll(self) -> int | None:
+        return self._proc.poll()
+
+    def send_signal(self, sig: int) -> None:
+        if self._proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                self._proc.send_signal(sig)
+
+
+class PopenLauncher:
+    """Spawns real processes, each in its own session and bound to the supervisor's life.
+
+    Its own session keeps a Ctrl-C at the terminal from reaching the nodes directly: the
+    supervisor stops them itself, in order. Must be called from the supervisor's main thread
+    (PR_SET_PDEATHSIG follows the thread that forked).
+    """
+
+    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> Child:
+        """Start a node process."""
+        proc = subprocess.Popen(
+            list(argv),
+            env=dict(env),
+            cwd=cwd,
+            start_new_session=True,
+            preexec_fn=_die_with_supervisor,
+        )
+        return _PopenChild(proc)
+
+
+def describe_exit(code: int) -> str:
+    """'killed by SIGKILL' or 'exit status 3'."""
+    if code < 0:
+        try:
+            return f'killed by {signal.Signals(-code).name}'
+        except ValueError:
+            return f'killed by signal {-code}'
+    return f'exit status {code}'
+
+
+class RestartPolicy:
+    """Decides how long to wait before a restart, and when to give up.
+
+    The count of consecutive crashes resets once a start sticks (ran ``stable_after`` seconds),
+    unlike launch's respawn whose retry count never resets.
+    """
+
+    def __init__(self, backoff: Backoff) -> None:
+        self.backoff = backoff
+        self.consecutive = 0
+
+    def on_crash(self, ran_for: float) -> float | None:
+        """Delay before restarting after a crash, or None to give up.
+
+        Args:
+            ran_for: Seconds the crashed process had been released and running (0 if it died
+                during recovery).
+        """
+        if ran_for >= self.backoff.stable_after:
+            self.consecutive = 0
+        self.consecutive += 1
+        if self.consecutive > self.backoff.max_restarts:
+            return None
+        if self.consecutive == 1:
+            return self.backoff.initial
+        return float(min(self.backoff.maximum, self.backoff.step * 2 ** (self.consecutive - 2)))

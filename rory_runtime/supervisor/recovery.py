@@ -1,0 +1,380 @@
+"""Crash recovery of one node, step by step (the paper's S1-S4).
+
+* **S1 safe state** - :meth:`Recovery.s1_safe_state`: the configured safe actions are published
+  at once and held until S4.
+* **S2 isolation** - :meth:`Recovery.s2_isolate`: the supervisor's ring takes over the node's
+  inputs, so nothing published while the node is down is lost: what the ring held at the crash
+  and all that arrives afterwards go to the *recovery log* R, a log segment of its own, minus
+  what the node had already logged. The replacement process starts isolated (its runtime mutes
+  its publishers, holds its timers and does not apply live messages).
+* **S3 data recovery** - :meth:`Recovery.s3_restart` spawns the process, whose runtime restores
+  the newest valid checkpoint before any callback; :meth:`Recovery.s3_replay` then streams every
+  logged message after that checkpoint's cut, then R, on the node's shadow topic, in receive
+  order, paced by the recorded gaps or as fast as the node takes them. When the stream has
+  caught up with R it seals R and sends RELEASE.
+* **S4 release** - :meth:`Recovery.s4_release`: the node has unmuted its outputs and started its
+  timers; the safe state is released. Afterwards the supervisor keeps relaying what its ring
+  receives until the node reports, topic by topic, that its live subscription carries the same
+  messages (the handover, see ``attach.py``).
+
+The invariant behind "no message lost, none applied twice": the node's log segments, then R,
+hold every message of the node's inputs exactly once, in receive order; a checkpoint's cut
+says which prefix of that sequence it absorbed; the node skips any identity it has already
+applied.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+from rclpy.publisher import Publisher
+
+from ..errors import LogError
+from ..log import LogEntry, SegmentStore, SegmentWriter, read_segment
+from ..protocol import (
+    FLAG_RELAY,
+    MessageId,
+    ReplayPace,
+    pack_msg,
+    pack_release,
+)
+from ..store import CheckpointStore
+from .ring import Ring
+from .safety import SafeState
+from .states import LOG_PREFIX
+
+_logger = logging.getLogger('rory.supervisor')
+
+
+def absorbed_identities(
+    checkpoints: CheckpointStore, segments: SegmentStore
+) -> dict[str, set[MessageId]]:
+    """Identities of every message the node has already absorbed or logged, per topic.
+
+    The newest readable checkpoint's windows cover what it absorbed recently (older segments
+    are gone); the segments after its cut cover the rest.
+    """
+    ckpt = checkpoints.latest_valid()
+    known: dict[str, set[MessageId]] = {}
+    cut = None
+    if ckpt is not None:
+        cut = ckpt.cut
+        for topic, idents in ckpt.windows.items():
+            known.setdefault(topic, set()).update((s, q) for s, q in idents)
+    for topic, logged in segments.identities_after(cut).items():
+        known.setdefault(topic, set()).update(logged)
+    return known
+
+
+class RecoveryLog:
+    """R: what arrived for the node since its crash (and the ring's backlog), as a segment.
+
+    Entries added after :meth:`seal` are the post-release relay: the node logs those itself.
+    """
+
+    def __init__(self, segments: SegmentStore, known: dict[str, set[MessageId]]) -> None:
+        self.number = segments.next_number()
+        self._writer: SegmentWriter | None = segments.open(self.number)
+        self._known = known
+        self.entries: list[LogEntry] = []
+        # Consumed from the front by the streamer, so a topic that never switches back to its
+        # live reader does not make this grow.
+        self.relay: deque[LogEntry] = deque()
+        self.sealed = False
+        self.cond = threading.Condition()
+        self.dropped_known = 0
+
+    def add(self, entry: LogEntry) -> None:
+        """Record one message (called from the ring's thread)."""
+        with self.cond:
+            seen = self._known.setdefault(entry.topic, set())
+            if entry.ident in seen:
+                self.dropped_known += 1
+                return
+            seen.add(entry.ident)
+            if self.sealed:
+                self.relay.append(entry)
+            else:
+                assert self._writer is not None
+                try:
+                    self._writer.write(
+                        entry.topic, entry.msgtype, entry.recv_ns, entry.source_ns, entry.seq,
+                        entry.data,
+                    )
+                except LogError as err:
+                    _logger.error('%s recovery log: %s', LOG_PREFIX, err)
+                self.entries.append(entry)
+            self.cond.notify_all()
+
+    def add_many(self, entries: list[LogEntry]) -> None:
+        """Record a backlog, already in receive order."""
+        for entry in entries:
+            self.add(entry)
+
+    def seal(self) -> None:
+        """Close the segment: from now on entries are relayed, not part of the log."""
+        with self.cond:
+            if self.sealed:
+                return
+            self.sealed = True
+            if self._writer is not None:
+                self._writer.close()
+                self._writer = None
+            self.cond.notify_all()
+
+    def close(self) -> None:
+        """Release the file (on supervisor stop)."""
+        self.seal()
+
+
+@dataclass
+class Timings:
+    """Monotonic timestamps of one recovery (seconds); None until reached."""
+
+    crashed: float
+    s1_done: float | None = None
+    s2_done: float | None = None
+    spawned: float | None = None
+    hello: float | None = None
+    restore_ms: float = 0.0
+    synced: float | None = None
+    release_sent: float | None = None
+    released: float | None = None
+    s4_done: float | None = None
+
+    def breakdown(self) -> dict[str, float]:
+        """Milliseconds per step, and the total (crash detected -> released)."""
+
+        def ms(a: float | None, b: float | None) -> float:
+            return round((b - a) * 1000.0, 2) if a is not None and b is not None else 0.0
+
+        return {
+            'total_ms': ms(self.crashed, self.s4_done),
+            's1_ms': ms(self.crashed, self.s1_done),
+            's2_ms': ms(self.s1_done, self.s2_done),
+            'restart_ms': round(max(0.0, ms(self.spawned, self.hello) - self.restore_ms), 2),
+            'restore_ms': round(self.restore_ms, 2),
+            'sync_ms': ms(self.hello, self.synced),
+            'replay_ms': ms(self.synced, self.release_sent),
+            's4_ms': ms(self.release_sent or self.hello, self.s4_done),
+        }
+
+
+class ReplayStreamer(threading.Thread):
+    """Feeds the node's shadow topic: logged segments, then R; RELEASE; then the relay."""
+
+    def __init__(
+        self,
+        publisher: Publisher,
+        incarnation: int,
+        backlog: Iterator[LogEntry],
+        rlog: RecoveryLog,
+        pace: ReplayPace,
+        crashed_ns: int,
+        on_released: Callable[[int], None],
+    ) -> None:
+        super().__init__(name=f'rory-replay-{incarnation}', daemon=True)
+        self._pub = publisher
+        self._incarnation = incarnation
+        self._backlog = backlog
+        self._rlog = rlog
+        self._pace = pace
+        self._crashed_ns = crashed_ns
+        self._on_released = on_released
+        self._stop = threading.Event()
+        self.switched: set[str] = set()
+        self.sent = 0
+        self.error: str | None = None
+
+    def stop(self) -> None:
+        """Stop streaming (the node died again, or the supervisor stops)."""
+        self._stop.set()
+        with self._rlog.cond:
+            self._rlog.cond.notify_all()
+
+    def _send(self, entry: LogEntry, flags: int = 0) -> None:
+        self._pub.publish(
+            pack_msg(
+                self._incarnation,
+                topic=entry.topic,
+                recv_ns=entry.recv_ns,
+                source_ns=entry.source_ns,
+                seq=entry.seq,
+                data=entry.data,
+                flags=flags,
+            )
+        )
+        self.sent += 1
+
+    def run(self) -> None:
+        try:
+            self._stream()
+        except LogError as err:
+            self.error = str(err)
+            _logger.error('%s replay failed: %s', LOG_PREFIX, err)
+
+    def _stream(self) -> None:
+        first_ns: int | None = None
+        wall0 = time.monotonic()
+
+        def pace(entry: LogEntry) -> None:
+            nonlocal first_ns
+            # The paper's mode replays at the recorded gaps; what arrived after the crash is
+            # queued and goes as fast as the node takes it, or the stream would never catch up.
+            if self._pace != ReplayPace.PACED or entry.recv_ns > self._crashed_ns:
+                return
+            if first_ns is None:
+                first_ns = entry.recv_ns
+                return
+            delay = wall0 + (entry.recv_ns - first_ns) / 1e9 - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+
+        for entry in self._backlog:
+            if self._stop.is_set():
+                return
+            pace(entry)
+            self._send(entry)
+        index = 0
+        while not self._stop.is_set():
+            with self._rlog.cond:
+                if index >= len(self._rlog.entries):
+                    # Caught up: seal R so everything after this RELEASE is a relay.
+                    self._rlog.seal()
+                    self._pub.publish(
+                        pack_release(self._incarnation, self._rlog.number + 1, self.sent)
+                    )
+                    break
+                entry = self._rlog.entries[index]
+            index += 1
+            pace(entry)
+            self._send(entry)
+        if self._stop.is_set():
+            return
+        self._on_released(self.sent)
+        self._relay()
+
+    def _relay(self) -> None:
+        while not self._stop.is_set():
+            with self._rlog.cond:
+                while not self._rlog.relay and not self._stop.is_set():
+                    self._rlog.cond.wait(0.5)
+                if self._stop.is_set():
+                    return
+                entry = self._rlog.relay.popleft()
+            if entry.topic not in self.switched:
+                self._send(entry, FLAG_RELAY)
+
+
+@dataclass
+class Recovery:
+    """The recovery of one crash of one node (it may take several processes to finish)."""
+
+    node_id: str
+    crashed: float  # monotonic
+    crashed_ns: int  # time.time_ns() at the crash, the clock of message receive times
+    safety: SafeState
+    ring: Ring | None
+    segments: SegmentStore
+    checkpoints: CheckpointStore
+    timings: Timings = field(init=False)
+    rlog: RecoveryLog | None = None
+    streamer: ReplayStreamer | None = None
+    crashes: int = 1
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.timings = Timings(crashed=self.crashed)
+
+    def s1_safe_state(self) -> None:
+        """S1: hold the safe state until S4."""
+        self.safety.hold(self.node_id)
+        self.timings.s1_done = time.monotonic()
+
+    def s2_isolate(self) -> None:
+        """S2: the ring takes over the node's inputs; their messages go to R, not to the node."""
+        if self.ring is not None and (self.rlog is None or self.rlog.sealed):
+            self.rlog = RecoveryLog(
+                self.segments, absorbed_identities(self.checkpoints, self.segments)
+            )
+            backlog = self.ring.activate(self.rlog.add)
+            self.rlog.add_many(backlog)
+        self.timings.s2_done = time.monotonic()
+
+    def again(self, crashed: float) -> None:
+        """The replacement died before release: same recovery, next process."""
+        self.crashes += 1
+        if self.streamer is not None:
+            self.streamer.stop()
+            self.streamer = None
+        self.timings.spawned = self.timings.hello = self.timings.synced = None
+        self.timings.release_sent = None
+
+    def s3_restart(self, spawn: Callable[[], None]) -> None:
+        """S3: start the replacement process (its runtime restores before any callback)."""
+        spawn()
+        self.timings.spawned = time.monotonic()
+
+    def on_hello(self, restore_ms: float) -> None:
+        """The replacement is up and has restored."""
+        self.timings.hello = time.monotonic()
+        self.timings.restore_ms = restore_ms
+
+    def s3_replay(
+        self,
+        publisher: Publisher,
+        incarnation: int,
+        cut: int | None,
+        pace: ReplayPace,
+        on_released: Callable[[int], None],
+    ) -> None:
+        """S3: stream the log after ``cut`` and then R on the shadow topic."""
+        assert self.rlog is not None
+        self.timings.synced = time.monotonic()
+        rlog_number = self.rlog.number
+        numbers = [
+            n for n in self.segments.numbers() if (cut is None or n > cut) and n < rlog_number
+        ]
+
+        def backlog() -> Iterator[LogEntry]:
+            for n in numbers:
+                yield from read_segment(self.segments.path(n))
+
+        def released(sent: int) -> None:
+            self.timings.release_sent = time.monotonic()
+            on_released(sent)
+
+        self.streamer = ReplayStreamer(
+            publisher, incarnation, backlog(), self.rlog, pace, self.crashed_ns, released
+        )
+        self.streamer.start()
+
+    def s4_release(self, node_stats: dict[str, Any]) -> dict[str, float]:
+        """S4: the node is released; leave the safe state. Returns the timing breakdown."""
+        self.timings.released = time.monotonic()
+        self.safety.release(self.node_id)
+        self.timings.s4_done = time.monotonic()
+        self.stats = dict(node_stats)
+        return self.timings.breakdown()
+
+    def on_switched(self, topic: str) -> bool:
+        """A topic is live again; stop relaying it. Returns True when every topic is."""
+        if self.streamer is not None:
+            self.streamer.switched.add(topic)
+        if self.ring is not None and topic in self.ring.topics:
+            self.ring.deactivate(topic)
+        return self.ring is None or not self.ring.active_topics
+
+    def finish(self) -> None:
+        """Handover complete (or the supervisor stops): stop the relay, seal R."""
+        if self.streamer is not None:
+            self.streamer.stop()
+            self.streamer = None
+        if self.rlog is not None:
+            self.rlog.close()

@@ -1,0 +1,549 @@
+"""``rory supervise``: runs instrumented nodes and recovers them when they crash.
+
+Threads: the main thread owns all decisions (it handles one event at a time from a queue and is
+the only one that spawns processes); an rclpy executor thread delivers status messages from the
+nodes; one reaper thread per process waits for it to end; the ring thread takes messages for
+recovering nodes; one streamer thread per recovery feeds a shadow topic.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import os
+import queue
+import random
+import shutil
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+from typing import Any, TextIO
+
+import rclpy
+import rclpy.utilities
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import String, UInt8MultiArray
+
+from .. import protocol
+from ..dds import fast_rediscovery_env
+from ..errors import ProtocolError
+from ..log import SegmentStore, default_typestore
+from ..protocol import InputSpec, Mode, StatusKind
+from ..store import CheckpointStore
+from .config import NodeConfig, SupervisorConfig
+from .process import Child, Launcher, PopenLauncher, RestartPolicy, describe_exit
+from .recovery import Recovery
+from .ring import Ring, RingContext
+from .safety import SafeState
+from .states import LOG_PREFIX, NodeState, NodeStateMachine, StateEvent
+
+_logger = logging.getLogger('rory.supervisor')
+
+SYNC_PERIOD = 0.05
+"""Seconds between SYNC envelopes until the node answers (DDS discovery of a new process)."""
+
+STOP_GRACE = (3.0, 2.0)
+"""Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
+
+
+# -- events, all handled on the main thread ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ChildExited:
+    node: str
+    incarnation: int
+    code: int
+    at: float  # monotonic, taken by the reaper the moment waitpid returned
+    at_ns: int
+
+
+@dataclass(frozen=True)
+class StatusReceived:
+    node: str
+    status: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Released:
+    node: str
+    incarnation: int
+    sent: int
+
+
+@dataclass(frozen=True)
+class Stop:
+    reason: str
+
+
+Event = ChildExited | StatusReceived | Released | Stop
+
+
+class EventLog:
+    """Machine-readable record of what happened: ``<store>/events.jsonl``."""
+
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        self._file: TextIO = path.open('a', encoding='utf-8')
+        self._lock = threading.Lock()
+
+    def write(self, kind: str, node: str, **fields: Any) -> None:
+        """Append one event."""
+        record = {'t': time.time(), 'kind': kind, 'node': node, **fields}
+        with self._lock:
+            self._file.write(json.dumps(record, sort_keys=True) + '\n')
+            self._file.flush()
+
+    def close(self) -> None:
+        """Close the file."""
+        with self._lock:
+            self._file.close()
+
+
+class ManagedNode:
+    """One supervised node: its process, its state, its ring and its recovery."""
+
+    def __init__(self, sup: Supervisor, cfg: NodeConfig) -> None:
+        self.sup = sup
+        self.cfg = cfg
+        self.id = cfg.name
+        self.sm = NodeStateMachine(cfg.name, _logger, listeners=[self._on_state])
+        self.policy = RestartPolicy(cfg.backoff)
+        self.child: Child | None = None
+        self.incarnation = 0
+        self.inputs: list[InputSpec] = []
+        self.ring: Ring | None = None
+        self.recovery: Recovery | None = None
+        self.running_since: float | None = None
+        self.restart_at: float | None = None
+        self.sync_nonce = 0
+        self.sync_sent = 0.0
+        self.synced_counts: dict[str, int] | None = None
+        self.release_sent = False
+        self.hello: dict[str, Any] | None = None
+        self.checkpoints = CheckpointStore(sup.config.store, cfg.name)
+        self.segments = SegmentStore(sup.config.store, cfg.name)
+        self.replay_pub: Publisher = sup.ros_node.create_publisher(
+            UInt8MultiArray, protocol.replay_topic(cfg.name), protocol.REPLAY_QOS
+        )
+        def on_status(msg: Any) -> None:
+            sup.post_status(cfg.name, str(msg.data))
+
+        sup.ros_node.create_subscription(
+            String, protocol.status_topic(cfg.name), on_status, protocol.STATUS_QOS
+        )
+
+    # -- process life -------------------------------------------------------------------------
+
+    def _on_state(self, event: StateEvent) -> None:
+        self.sup.events_log.write(
+            'state', self.id, old=event.old.value, new=event.new.value, reason=event.reason,
+            incarnation=self.incarnation,
+        )
+
+    def spawn(self, mode: Mode) -> None:
+        """Start a new process of this node (main thread only)."""
+        self.incarnation += 1
+        self.hello = None
+        # One nonce per process: a SYNCED that answers any of its SYNCs proves the path.
+        self.sync_nonce = random.getrandbits(63)
+        self.synced_counts = None
+        self.release_sent = False
+        env = dict(os.environ)
+        env.update(self.cfg.env)
+        env.update(
+            {
+                protocol.ENV_NODE: self.id,
+                protocol.ENV_STORE: str(self.sup.config.store),
+                protocol.ENV_INCARNATION: str(self.incarnation),
+                protocol.ENV_METHOD: self.cfg.method.value,
+                protocol.ENV_MODE: mode.value,
+                protocol.ENV_INTERVAL: repr(self.cfg.checkpoint_interval),
+                'PYTHONUNBUFFERED': '1',
+            }
+        )
+        child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder)
+        self.child = child
+        incarnation = self.incarnation
+        _logger.info(
+            '%s %s: spawned pid %d (incarnation %d, %s)', LOG_PREFIX, self.id, child.pid,
+            incarnation, mode.value,
+        )
+        self.sup.events_log.write('spawn', self.id, pid=child.pid, incarnation=incarnation,
+                                  mode=mode.value)
+
+        def reap() -> None:
+            code = child.wait()
+            self.sup.events.put(
+                ChildExited(self.id, incarnation, code, time.monotonic(), time.time_ns())
+            )
+
+        threading.Thread(target=reap, name=f'rory-reap-{self.id}', daemon=True).start()
+
+    def start(self) -> None:
+        """First start of the node."""
+        self.sm.change_state(NodeState.STARTING)
+        self.spawn(Mode.FRESH)
+
+    def on_exit(self, ev: ChildExited) -> None:
+        """The process ended."""
+        if ev.incarnation != self.incarnation or self.sm.state in (
+            NodeState.STOPPING, NodeState.STOPPED,
+        ):
+            return
+        self.child = None
+        how = describe_exit(ev.code)
+        self.sup.events_log.write('exit', self.id, code=ev.code, incarnation=ev.incarnation)
+        if ev.code == 0 and not self.cfg.restart_on_clean_exit:
+            self.sm.change_state(NodeState.EXITED, how)
+            self._end_recovery()
+            return
+        ran_for = 0.0 if self.running_since is None else ev.at - self.running_since
+        self.running_since = None
+        self.sm.change_state(NodeState.CRASHED, how)
+        self._crashed(ev)
+        delay = self.policy.on_crash(ran_for)
+        if delay is None:
+            # Giving up leaves the robot in the safe state: nothing will drive it back out.
+            self.sm.change_state(
+                NodeState.FATAL,
+                f'{self.policy.consecutive - 1} restarts in a row failed; giving up',
+            )
+            self.sup.events_log.write('fatal', self.id, crashes=self.policy.consecutive)
+            if self.recovery is not None and self.recovery.streamer is not None:
+                self.recovery.streamer.stop()
+            return
+        if delay > 0:
+            self.restart_at = time.monotonic() + delay
+            self.sm.change_state(NodeState.BACKOFF, f'restart in {delay:.1f} s')
+        else:
+            self._restart()
+
+    def _crashed(self, ev: ChildExited) -> None:
+        rec = self.recovery
+        if rec is not None and rec.rlog is not None and not rec.rlog.sealed:
+            # Died during its own recovery: same recovery goes on, R keeps recording.
+            rec.again(ev.at)
+            return
+        if rec is not None:
+            rec.finish()  # crashed during the handover of an earlier recovery
+        ring = self.ring if self.cfg.method.logs else None
+        rec = Recovery(
+            node_id=self.id, crashed=ev.at, crashed_ns=ev.at_ns, safety=self.sup.safety,
+            ring=ring, segments=self.segments, checkpoints=self.checkpoints,
+        )
+        self.recovery = rec
+        rec.s1_safe_state()
+        rec.s2_isolate()
+
+    def _restart(self) -> None:
+        self.restart_at = None
+        self.sm.change_state(NodeState.RESTORING, 'restart, restore')
+        assert self.recovery is not None
+        self.recovery.s3_restart(lambda: self.spawn(Mode.RECOVER))
+
+    def on_status(self, status: dict[str, Any]) -> None:
+        """A status message from this node's runtime."""
+        if status['incarnation'] != self.incarnation:
+            return
+        kind = StatusKind(status['kind'])
+        if kind == StatusKind.HELLO:
+            self._on_hello(status)
+        elif kind == StatusKind.SYNCED:
+            if status.get('nonce') == self.sync_nonce and self.synced_counts is None:
+                self.synced_counts = {
+                    str(k): int(v) for k, v in dict(status.get('live_publishers', {})).items()
+                }
+                self._on_synced()
+        elif kind == StatusKind.RELEASED:
+            self._on_released(status)
+        elif kind == StatusKind.CHECKPOINT:
+            _logger.info(
+                '%s %s: checkpoint %s (cut %s, %s B, stall %.2f ms)', LOG_PREFIX, self.id,
+                status.get('seq'), status.get('cut'), status.get('bytes'),
+                float(status.get('stall_ms', 0.0)),
+            )
+            self.sup.events_log.write('checkpoint', self.id, **_fields(status))
+        elif kind == StatusKind.SWITCHED:
+            topic = str(status.get('topic'))
+            self.sup.events_log.write('switched', self.id, topic=topic)
+            if self.recovery is not None and self.recovery.on_switched(topic):
+                self._end_recovery()
+        elif kind == StatusKind.ERROR:
+            _logger.error('%s %s: %s', LOG_PREFIX, self.id, status.get('message'))
+            self.sup.events_log.write('error', self.id, message=status.get('message'))
+
+    def _on_hello(self, status: dict[str, Any]) -> None:
+        if self.hello is not None:
+            return
+        self.hello = status
+        try:
+            self.inputs = [InputSpec.from_json(i) for i in status.get('inputs', [])]
+        except ProtocolError as err:
+            _logger.error('%s %s: bad HELLO: %s', LOG_PREFIX, self.id, err)
+            return
+        self.sup.events_log.write('hello', self.id, **_fields(status))
+        for refused in status.get('refused') or []:
+            _logger.warning('%s %s: %s', LOG_PREFIX, self.id, refused)
+        if self.cfg.method.logs:
+            if self.ring is None:
+                self.ring = self.sup.make_ring(self.id)
+            self.ring.ensure(self.inputs)
+            if self.recovery is not None and self.recovery.ring is None:
+                _logger.warning(
+                    '%s %s: crashed before RORY knew its inputs; messages published until now '
+                    'are not recorded', LOG_PREFIX, self.id,
+                )
+                self.recovery.ring = self.ring
+                self.recovery.s2_isolate()
+        if self.recovery is not None:
+            self.recovery.on_hello(float(status.get('restore_ms', 0.0)))
+            if self.cfg.method.checkpoints and status.get('refused') and not status.get('restored'):
+                # Logs are pruned up to the older kept checkpoint's cut: with both refused,
+                # replay cannot rebuild what they held. Say so; never pretend.
+                _logger.error(
+                    '%s %s: every checkpoint was refused; the state is rebuilt only from the log '
+                    'that remains and may be incomplete', LOG_PREFIX, self.id,
+                )
+        if self.cfg.method.logs:
+            if self.sm.state == NodeState.STARTING:
+                self.sm.change_state(NodeState.ARMING, 'waiting for RORY readers to match')
+            elif self.sm.state == NodeState.RESTORING:
+                cut = (status.get('restored') or {}).get('cut')
+                self.sm.change_state(NodeState.REPLAYING, f'replay after segment {cut}')
+            self._send_sync()
+
+    def _send_sync(self) -> None:
+        self.sync_sent = time.monotonic()
+        self.replay_pub.publish(protocol.pack_sync(self.incarnation, self.sync_nonce))
+
+    def _on_synced(self) -> None:
+        if self.sm.state == NodeState.REPLAYING and self.recovery is not None:
+            assert self.hello is not None
+            cut = (self.hello.get('restored') or {}).get('cut')
+            incarnation = self.incarnation
+            self.recovery.s3_replay(
+                self.replay_pub, incarnation, cut, self.cfg.replay,
+                lambda sent: self.sup.events.put(Released(self.id, incarnation, sent)),
+            )
+
+    def _armed(self) -> bool:
+        """The ring matches every publisher the node's own readers have (fresh start)."""
+        if self.synced_counts is None or self.ring is None:
+            return False
+        counts = self.ring.publisher_counts()
+        return all(counts.get(t, 0) >= n for t, n in self.synced_counts.items())
+
+    def _on_released(self, status: dict[str, Any]) -> None:
+        self.running_since = time.monotonic()
+        stats = {k: status.get(k) for k in ('applied', 'replayed', 'duplicates', 'muted')}
+        rec = self.recovery
+        if rec is not None and self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING):
+            timing = rec.s4_release(stats)
+            self.sm.change_state(NodeState.RUNNING, 'released')
+            _logger.info(
+                '%s %s: recovered in %.1f ms (%s; crashes %d; replayed %s, duplicates skipped %s)',
+                LOG_PREFIX, self.id, timing['total_ms'],
+                ' '.join(f'{k[:-3]}={v:.1f}' for k, v in timing.items() if k != 'total_ms'),
+                rec.crashes, stats['replayed'], stats['duplicates'],
+            )
+            self.sup.events_log.write(
+                'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
+                incarnation=self.incarnation, **timing, **stats,
+            )
+            if rec.ring is None or not rec.ring.active_topics:
+                self._end_recovery()
+        elif self.sm.state in (NodeState.STARTING, NodeState.ARMING):
+            self.sm.change_state(NodeState.RUNNING, 'released')
+
+    def _end_recovery(self) -> None:
+        if self.recovery is not None:
+            self.recovery.finish()
+            self.sup.safety.release(self.id)
+            self.recovery = None
+
+    def tick(self, now: float) -> None:
+        """Time-driven work: SYNC resends, arming, backoff expiry."""
+        state = self.sm.state
+        if state == NodeState.BACKOFF and self.restart_at is not None and now >= self.restart_at:
+            self._restart()
+        elif state in (NodeState.ARMING, NodeState.REPLAYING):
+            if self.synced_counts is None and now - self.sync_sent >= SYNC_PERIOD:
+                self._send_sync()
+            elif state == NodeState.ARMING and not self.release_sent and self._armed():
+                self.release_sent = True  # once; the node answers RELEASED
+                self.replay_pub.publish(
+                    protocol.pack_release(self.incarnation, self.segments.next_number(), 0)
+                )
+
+    def stop(self) -> None:
+        """Stop the node's process: SIGINT, then SIGTERM, then SIGKILL."""
+        if self.sm.state in (NodeState.STOPPING, NodeState.STOPPED):
+            return
+        self.sm.change_state(NodeState.STOPPING, 'supervisor stopping')
+        if self.recovery is not None:
+            self.recovery.finish()
+        child = self.child
+        if child is not None:
+            for sig, grace in zip(
+                (signal.SIGINT, signal.SIGTERM, signal.SIGKILL), (*STOP_GRACE, 5.0), strict=True
+            ):
+                child.send_signal(sig)
+                try:
+                    child.wait(timeout=grace)
+                    break
+                except Exception:
+                    continue
+        self.child = None
+        self.sm.change_state(NodeState.STOPPED)
+
+
+def _fields(status: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in status.items() if k not in ('kind', 'node')}
+
+
+class Supervisor:
+    """Runs the configured nodes until stopped by a signal or until they have all ended."""
+
+    def __init__(self, config: SupervisorConfig, launcher: Launcher | None = None) -> None:
+        self.config = config
+        self.launcher: Launcher = launcher or PopenLauncher()
+        self.events: queue.Queue[Event] = queue.Queue()
+        self.nodes: dict[str, ManagedNode] = {}
+        self._ring_ctx: RingContext | None = None
+        self._stopping = False
+
+    # called from other threads
+    def post_status(self, node_id: str, text: str) -> None:
+        """Queue a status message for the main thread."""
+        try:
+            status = protocol.decode_status(text)
+        except ProtocolError as err:
+            _logger.warning('%s %s: ignoring malformed status: %s', LOG_PREFIX, node_id, err)
+            return
+        if status['node'] == node_id:
+            self.events.put(StatusReceived(node_id, status))
+
+    def make_ring(self, node_id: str) -> Ring:
+        """A ring for one node (the shared ring context is created on first use)."""
+        if self._ring_ctx is None:
+            self._ring_ctx = RingContext()
+        return Ring(self._ring_ctx, node_id)
+
+    def _prepare_store(self) -> None:
+        # A fresh run must not mix with an earlier run's checkpoints and logs: set them aside
+        # (the newest earlier run is kept under .previous/ for inspection).
+        store = self.config.store
+        store.mkdir(parents=True, exist_ok=True, mode=0o700)
+        os.chmod(store, 0o700)
+        previous = store / '.previous'
+        for node in self.config.nodes:
+            current = store / node.name
+            if current.exists():
+                target = previous / node.name
+                if target.exists():
+                    shutil.rmtree(target)
+                previous.mkdir(exist_ok=True, mode=0o700)
+                current.rename(target)
+                _logger.info('%s %s: earlier run set aside in %s', LOG_PREFIX, node.name, target)
+
+    def _install_signals(self) -> Callable[[], None]:
+        def handler(signum: int, _frame: FrameType | None) -> None:
+            self.events.put(Stop(signal.Signals(signum).name))
+
+        old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+
+        def restore() -> None:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+        return restore
+
+    def _apply_dds_settings(self) -> None:
+        # Before any participant exists in this process; children inherit os.environ. An
+        # operator's own Fast DDS profile wins.
+        if self.config.dds == 'fast_rediscovery' and not (
+            os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
+            or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')
+        ):
+            os.environ.update(fast_rediscovery_env())
+
+    def run(self) -> int:
+        """Supervise until stopped. Returns the process exit code."""
+        self._apply_dds_settings()
+        restore_signals = self._install_signals()
+        self._prepare_store()
+        self.events_log = EventLog(self.config.store / 'events.jsonl')
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        self.ros_node = Node('rory_supervisor')
+        if any(n.method.logs for n in self.config.nodes):
+            # The recovery log needs the typestore at a crash; load it now, not then (~0.1 s).
+            threading.Thread(target=default_typestore, daemon=True).start()
+        executor = SingleThreadedExecutor()
+        spinner = threading.Thread(target=self._spin, args=(executor,), name='rory-ros')
+        code = 1
+        try:
+            self.safety = SafeState(self.ros_node, self.config)
+            for cfg in self.config.nodes:
+                self.nodes[cfg.name] = ManagedNode(self, cfg)
+            executor.add_node(self.ros_node)
+            spinner.start()
+            for node in self.nodes.values():
+                node.start()
+            code = self._loop()
+        finally:
+            for node in self.nodes.values():
+                node.stop()
+            if self._ring_ctx is not None:
+                self._ring_ctx.shutdown()
+            # Shut the context down first so the spinner leaves spin_once, then join it: an
+            # executor thread still inside rcl at interpreter exit aborts the process.
+            rclpy.utilities.try_shutdown()
+            if spinner.is_alive():
+                spinner.join(timeout=2.0)
+            executor.shutdown(timeout_sec=1.0)
+            self.ros_node.destroy_node()
+            self.events_log.close()
+            restore_signals()
+        return code
+
+    def _spin(self, executor: SingleThreadedExecutor) -> None:
+        while rclpy.utilities.ok():
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except Exception:
+                if rclpy.utilities.ok():
+                    _logger.exception('%s executor error', LOG_PREFIX)
+
+    def _loop(self) -> int:
+        for _ in itertools.count():
+            try:
+                event = self.events.get(timeout=0.02)
+            except queue.Empty:
+                event = None
+            if isinstance(event, Stop):
+                _logger.info('%s stopping (%s)', LOG_PREFIX, event.reason)
+                return 0
+            if isinstance(event, ChildExited):
+                self.nodes[event.node].on_exit(event)
+            elif isinstance(event, StatusReceived):
+                self.nodes[event.node].on_status(event.status)
+            elif isinstance(event, Released):
+                pass  # the node's RELEASED status ends the recovery; this only marks the send
+            now = time.monotonic()
+            for node in self.nodes.values():
+                node.tick(now)
+            states = {n.sm.state for n in self.nodes.values()}
+            if states <= {NodeState.EXITED, NodeState.FATAL}:
+                failed = NodeState.FATAL in states
+                _logger.info('%s all nodes have ended%s', LOG_PREFIX, ' (FATAL)' if failed else '')
+                return 1 if failed else 0
+        return 0

@@ -38,18 +38,17 @@ sees it; the codec never writes that extension, and checkpoint files carry a che
 
 from __future__ import annotations
 
-import importlib
 import math
 import re
 import threading
 from collections.abc import Callable, Mapping
-from functools import cache
 from typing import Any, Final
 
 import msgpack
 import numpy as np
 
 from rory_runtime.errors import CodecError
+from rory_runtime.msgtypes import MessageTypeError, get_message_class, message_type_name
 
 EXT_TUPLE: Final = 1
 EXT_SET: Final = 2
@@ -285,25 +284,8 @@ def _lower_rosmsg(message: object, type_name: str, path: _Path) -> msgpack.ExtTy
 
 
 def ros_type_name(cls: type) -> str | None:
-    """Return the ROS 2 type name of a generated message class, or None if it is not one.
-
-    Generated classes live in modules like ``std_msgs.msg._int64`` and have a metaclass that
-    carries ``_TYPE_SUPPORT``; services, actions and look-alikes are not messages.
-
-    Args:
-        cls: The class to inspect.
-
-    Returns:
-        A name like ``std_msgs/msg/Int64``, or None.
-
-    """
-    if not hasattr(type(cls), '_TYPE_SUPPORT') or not hasattr(cls, 'get_fields_and_field_types'):
-        return None
-    parts = cls.__module__.split('.')
-    if len(parts) != 3 or parts[1] != 'msg' or not parts[2].startswith('_'):
-        return None
-    name = f'{parts[0]}/msg/{cls.__name__}'
-    return name if ROS_TYPE_RE.fullmatch(name) else None
+    """Return the ROS 2 type name of a generated message class, or None if it is not one."""
+    return message_type_name(cls)
 
 
 def _type_label(kind: type) -> str:
@@ -530,20 +512,13 @@ def _decode_rosmsg(data: bytes) -> object:
         raise _Malformed(msg) from None
 
 
-@cache
 def _message_class(type_name: str) -> type:
-    """Import the class of a validated type name (what rosidl_runtime_py's get_message does)."""
-    package, _, class_name = type_name.split('/')
+    """The class of a validated type name; nothing but a ROS message package is imported."""
     try:
-        module = importlib.import_module(f'{package}.msg')
-    except ImportError:
+        return get_message_class(type_name)
+    except MessageTypeError:
         msg = f'ROS message type {type_name} is not installed'
         raise _Malformed(msg) from None
-    cls = getattr(module, class_name, None)
-    if not isinstance(cls, type) or ros_type_name(cls) != type_name:
-        msg = f'ROS message type {type_name} is not installed'
-        raise _Malformed(msg)
-    return cls
 
 
 _EXT_DECODERS: Final[dict[int, Callable[[bytes], object]]] = {

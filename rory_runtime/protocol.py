@@ -54,7 +54,7 @@ ENV_METHOD: Final = 'RORY_METHOD'
 ENV_MODE: Final = 'RORY_MODE'
 ENV_INTERVAL: Final = 'RORY_CHECKPOINT_INTERVAL'
 
-NODE_ID_RE: Final = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+NODE_ID_RE: Final = re.compile(r'[A-Za-z][A-Za-z0-9_]*')  # use fullmatch
 
 # Publisher sequence numbers are stored in MCAP's u32 ``sequence`` field; identities use the
 # same truncation everywhere so that a live message and its logged copy compare equal.
@@ -168,7 +168,12 @@ def decode_status(text: str) -> dict[str, Any]:
     kind = obj.get('kind')
     if kind not in {k.value for k in StatusKind}:
         raise ProtocolError(f'status has unknown kind {kind!r}')
-    if not isinstance(obj.get('node'), str) or not isinstance(obj.get('incarnation'), int):
+    incarnation = obj.get('incarnation')
+    if (
+        not isinstance(obj.get('node'), str)
+        or not isinstance(incarnation, int)
+        or isinstance(incarnation, bool)
+    ):
         raise ProtocolError('status lacks node or incarnation')
     return obj
 
@@ -283,6 +288,8 @@ def unpack(raw: bytes) -> Envelope:
     if encap[:2] != _CDR_LE[:2] or ndim != 0 or not 0 <= padding <= 3:
         raise ProtocolError('envelope is not a plain UInt8MultiArray')
     view = view[: _CDR_PREFIX.size + length]
+    if length < _HEAD.size:
+        raise ProtocolError(f'envelope payload too short ({length} bytes)')
     off = _CDR_PREFIX.size
     magic, version, kind, incarnation = _HEAD.unpack_from(view, off)
     if magic != _MAGIC or version != _VERSION:
@@ -340,17 +347,25 @@ class InputSpec:
         Raises:
             ProtocolError: Missing or ill-typed fields.
         """
-        try:
-            spec = cls(
-                topic=str(obj['topic']),
-                msgtype=str(obj['type']),
-                reliable=bool(obj['reliable']),
-                transient_local=bool(obj['transient_local']),
-                depth=int(obj['depth']),
-            )
-        except (KeyError, TypeError, ValueError) as err:
-            raise ProtocolError(f'bad input description {obj!r}: {err}') from None
-        return spec
+        expected = {
+            'topic': str, 'type': str, 'reliable': bool, 'transient_local': bool, 'depth': int,
+        }
+        if not isinstance(obj, dict):
+            raise ProtocolError(f'bad input description {obj!r}: not an object')
+        for key, kind in expected.items():
+            value = obj.get(key)
+            # bool is an int in Python; a depth of True is not a depth
+            if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+                raise ProtocolError(f'bad input description {obj!r}: {key} must be {kind.__name__}')
+        if obj['depth'] < 0:
+            raise ProtocolError(f'bad input description {obj!r}: depth must be >= 0')
+        return cls(
+            topic=obj['topic'],
+            msgtype=obj['type'],
+            reliable=obj['reliable'],
+            transient_local=obj['transient_local'],
+            depth=obj['depth'],
+        )
 
     @classmethod
     def from_qos(cls, topic: str, msgtype: str, qos: QoSProfile) -> InputSpec:

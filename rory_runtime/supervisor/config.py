@@ -34,7 +34,7 @@ import yaml
 from ..errors import ConfigError
 from ..protocol import NODE_ID_RE, Method, ReplayPace
 
-_TYPE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*/msg/[A-Z][A-Za-z0-9]*$')
+_TYPE_RE = re.compile(r'[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*')
 _PYTHON_NAMES = frozenset({'python', 'python3', 'python3.11'})
 
 
@@ -94,7 +94,7 @@ class _Fields:
         self.where = where
         if not isinstance(obj, dict):
             raise ConfigError(path, where or '(top level)', 'must be a mapping')
-        unknown = sorted(set(obj) - allowed)
+        unknown = sorted(str(key) for key in set(obj) - allowed)
         if unknown:
             allowed_list = ', '.join(sorted(allowed))
             raise ConfigError(
@@ -142,6 +142,8 @@ def load_config(path: Path | str) -> SupervisorConfig:
         text = path.read_text(encoding='utf-8')
     except OSError as err:
         raise ConfigError(path, '(file)', f'cannot read: {err.strerror}') from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(path, '(file)', f'not UTF-8 text: {err.reason}') from None
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as err:
@@ -187,7 +189,7 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         },
     )
     name = f.required('name')
-    if not isinstance(name, str) or not NODE_ID_RE.match(name):
+    if not isinstance(name, str) or not NODE_ID_RE.fullmatch(name):
         raise f.error('name', f'must be a letter then letters, digits or _, got {name!r}')
     command = f.required('command')
     if isinstance(command, str):
@@ -195,11 +197,11 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
     if not isinstance(command, list) or not command or not all(isinstance(a, str) for a in command):
         raise f.error('command', 'must be a non-empty list of strings')
     method = f.obj.get('method', Method.RORY.value)
-    if method not in {m.value for m in Method}:
+    if not isinstance(method, str) or method not in {m.value for m in Method}:
         methods = ', '.join(m.value for m in Method)
         raise f.error('method', f'must be one of {methods}, got {method!r}')
     replay = f.obj.get('replay', ReplayPace.PACED.value)
-    if replay not in {p.value for p in ReplayPace}:
+    if not isinstance(replay, str) or replay not in {p.value for p in ReplayPace}:
         raise f.error('replay', f'must be paced or fast, got {replay!r}')
     env = f.obj.get('env') or {}
     if not isinstance(env, dict) or not all(isinstance(k, str) for k in env):
@@ -245,7 +247,7 @@ def _safe_action(path: Path, where: str, obj: Any) -> SafeAction:
     if not isinstance(topic, str) or not topic.startswith('/'):
         raise f.error('topic', f'must be an absolute topic name, got {topic!r}')
     msgtype = f.required('type')
-    if not isinstance(msgtype, str) or not _TYPE_RE.match(msgtype):
+    if not isinstance(msgtype, str) or not _TYPE_RE.fullmatch(msgtype):
         raise f.error('type', f'must look like pkg/msg/Name, got {msgtype!r}')
     hold = f.required('hold')
     if not isinstance(hold, dict):

@@ -187,14 +187,14 @@ class ReplayStreamer(threading.Thread):
         self._pace = pace
         self._crashed_ns = crashed_ns
         self._on_released = on_released
-        self._stop = threading.Event()
+        self._stopped = threading.Event()
         self.switched: set[str] = set()
         self.sent = 0
         self.error: str | None = None
 
     def stop(self) -> None:
         """Stop streaming (the node died again, or the supervisor stops)."""
-        self._stop.set()
+        self._stopped.set()
         with self._rlog.cond:
             self._rlog.cond.notify_all()
 
@@ -234,15 +234,15 @@ class ReplayStreamer(threading.Thread):
                 return
             delay = wall0 + (entry.recv_ns - first_ns) / 1e9 - time.monotonic()
             if delay > 0:
-                self._stop.wait(delay)
+                self._stopped.wait(delay)
 
         for entry in self._backlog:
-            if self._stop.is_set():
+            if self._stopped.is_set():
                 return
             pace(entry)
             self._send(entry)
         index = 0
-        while not self._stop.is_set():
+        while not self._stopped.is_set():
             with self._rlog.cond:
                 if index >= len(self._rlog.entries):
                     # Caught up: seal R so everything after this RELEASE is a relay.
@@ -255,17 +255,17 @@ class ReplayStreamer(threading.Thread):
             index += 1
             pace(entry)
             self._send(entry)
-        if self._stop.is_set():
+        if self._stopped.is_set():
             return
         self._on_released(self.sent)
         self._relay()
 
     def _relay(self) -> None:
-        while not self._stop.is_set():
+        while not self._stopped.is_set():
             with self._rlog.cond:
-                while not self._rlog.relay and not self._stop.is_set():
+                while not self._rlog.relay and not self._stopped.is_set():
                     self._rlog.cond.wait(0.5)
-                if self._stop.is_set():
+                if self._stopped.is_set():
                     return
                 entry = self._rlog.relay.popleft()
             if entry.topic not in self.switched:

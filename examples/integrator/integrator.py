@@ -23,7 +23,9 @@ class Integrator(Node):
         self.history = []  # every number, in the order received
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.state_pub = self.create_publisher(String, '/integrator/state', latched)
-        self.create_subscription(Int64, '/numbers', self.on_number, 10)
+        # Every number counts: a queue deep enough that a burst (a publisher catching up after
+        # a stall) is not cut down to the newest 10 before this node can take it.
+        self.create_subscription(Int64, '/numbers', self.on_number, 100)
         self.create_timer(1.0, self.publish_state)
 
     def on_number(self, msg):

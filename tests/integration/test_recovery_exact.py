@@ -1,0 +1,143 @@
+"""A stateful node SIGKILLed at chosen points comes back holding exactly its no-crash state.
+
+Real processes throughout: rory-instrument rewrites examples/integrator, `rory supervise` runs
+it, a publisher process sends 1..N, the node is SIGKILLed (see rory_eval.scenario). Exactness:
+the node's final history is [1, ..., N] - nothing lost, nothing applied twice, in order.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from rory_eval.scenario import Kill, ScenarioResult, run
+
+pytestmark = pytest.mark.ros
+
+COUNT = 300  # 6 s at 50 Hz: live traffic goes on after release, so the handover is exercised
+
+
+def _exits(result: ScenarioResult) -> list[int]:
+    return [i for i, e in enumerate(result.events) if e['kind'] == 'exit']
+
+
+def _checkpoints_before(result: ScenarioResult, index: int) -> list[dict[str, Any]]:
+    return [e for e in result.events[:index] if e['kind'] == 'checkpoint']
+
+
+def _assert_exact(result: ScenarioResult) -> None:
+    assert result.lost == 0, f'{result.lost} messages lost\n{result.log[-3000:]}'
+    assert result.duplicated == 0, f'{result.duplicated} messages applied twice'
+    assert result.history == list(range(1, COUNT + 1)), 'history out of order'
+
+
+def _assert_safe_state_held_until_release(result: ScenarioResult) -> None:
+    """S1 latched /e_stop true at the crash; S4 released it after recovery."""
+    first_kill = result.kills[0][1]
+    after = [value for t, value in result.e_stop if t >= first_kill - 0.05]
+    assert after[:1] == [True], f'no safe state after the crash: {result.e_stop}'
+    assert result.e_stop[-1][1] is False, f'safe state never released: {result.e_stop}'
+
+
+def test_rory_kill_before_the_first_checkpoint(tmp_path: Path, ros_domain: int) -> None:
+    result = run('rory', (Kill(after=0.5),), tmp_path, domain_id=ros_domain, count=COUNT)
+    exits = _exits(result)
+    assert len(exits) == 1
+    assert not _checkpoints_before(result, exits[0]), 'killed after a checkpoint'
+    _assert_exact(result)
+    _assert_safe_state_held_until_release(result)
+
+
+def test_rory_kill_mid_interval(tmp_path: Path, ros_domain: int) -> None:
+    result = run('rory', (Kill(after=3.0),), tmp_path, domain_id=ros_domain, count=COUNT)
+    exits = _exits(result)
+    checkpoints = _checkpoints_before(result, exits[0])
+    assert checkpoints, 'no checkpoint before the kill'
+    # Mid-interval: the last checkpoint came well before the crash.
+    assert result.events[exits[0]]['t'] - checkpoints[-1]['t'] > 0.3
+    _assert_exact(result)
+    _assert_safe_state_held_until_release(result)
+    recovered = [e for e in result.events if e['kind'] == 'recovered']
+    assert len(recovered) == 1 and recovered[0]['replayed'] > 0
+
+
+def test_rory_kill_just_after_a_checkpoint(tmp_path: Path, ros_domain: int) -> None:
+    result = run(
+        'rory', (Kill(after_checkpoint=2),), tmp_path, domain_id=ros_domain, count=COUNT
+    )
+    exits = _exits(result)
+    checkpoints = _checkpoints_before(result, exits[0])
+    assert len(checkpoints) >= 2
+    assert result.events[exits[0]]['t'] - checkpoints[-1]['t'] < 0.3
+    _assert_exact(result)
+    _assert_safe_state_held_until_release(result)
+
+
+@pytest.mark.parametrize('method', ['rory', 'replay'])
+def test_second_kill_during_recovery(method: str, tmp_path: Path, ros_domain: int) -> None:
+    result = run(
+        method,
+        (Kill(after=2.5), Kill(during_recovery=0.3)),
+        tmp_path,
+        domain_id=ros_domain,
+        count=COUNT,
+    )
+    assert len(result.kills) == 2
+    states = [(e['old'], e['new']) for e in result.events if e['kind'] == 'state']
+    assert ('REPLAYING', 'CRASHED') in states, 'second kill did not land during the replay'
+    recovered = [e for e in result.events if e['kind'] == 'recovered']
+    assert len(recovered) == 1 and recovered[0]['crashes'] == 2
+    _assert_exact(result)
+    _assert_safe_state_held_until_release(result)
+
+
+def test_replay_kill_mid_run(tmp_path: Path, ros_domain: int) -> None:
+    result = run('replay', (Kill(after=3.0),), tmp_path, domain_id=ros_domain, count=COUNT)
+    _assert_exact(result)
+    recovered = [e for e in result.events if e['kind'] == 'recovered']
+    # replay-alone restores nothing and replays everything since the start
+    assert recovered[0]['restore_ms'] == 0.0
+    assert recovered[0]['replayed'] >= 140
+
+
+def test_rory_fast_replay(tmp_path: Path, ros_domain: int) -> None:
+    result = run(
+        'rory', (Kill(after=3.0),), tmp_path, domain_id=ros_domain, count=COUNT, pace='fast'
+    )
+    _assert_exact(result)
+
+
+def test_handover_returns_the_topic_to_its_live_reader(tmp_path: Path, ros_domain: int) -> None:
+    # Killed early, the node is back while numbers still flow: the relay must hand /numbers
+    # back to the node's own live subscription, without losing or repeating a message.
+    result = run('rory', (Kill(after=0.5),), tmp_path, domain_id=ros_domain, count=COUNT)
+    switched = [e['topic'] for e in result.events if e['kind'] == 'switched']
+    assert switched == ['/numbers']
+    _assert_exact(result)
+
+
+@pytest.mark.parametrize('method', ['restart', 'checkpoint'])
+def test_baselines_visibly_lose_state(method: str, tmp_path: Path, ros_domain: int) -> None:
+    result = run(method, (Kill(after=3.0),), tmp_path, domain_id=ros_domain, count=COUNT)
+    assert len(result.recovery_ms) == 1
+    assert not result.correct
+    assert result.lost > 0
+    assert result.duplicated == 0
+    if method == 'restart':
+        # a respawned node starts empty: only numbers after its restart
+        assert result.history[0] > 1
+    else:
+        # the checkpoint holds the start; what came after it is gone
+        assert result.history[:50] == list(range(1, 51))
+
+
+@pytest.mark.parametrize('method', ['restart', 'checkpoint', 'replay', 'rory'])
+def test_no_crash_run_is_exact_under_every_method(
+    method: str, tmp_path: Path, ros_domain: int
+) -> None:
+    result = run(method, (), tmp_path, domain_id=ros_domain, count=COUNT)
+    assert result.recovery_ms == []
+    _assert_exact(result)
+    assert result.e_stop == []  # no crash, no safe state

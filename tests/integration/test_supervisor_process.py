@@ -1,0 +1,163 @@
+"""`rory supervise` as a process: clean stop on signals, crash loops, clean exits, bad config."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from rory_eval.scenario import prepare, scenario_env
+
+pytestmark = pytest.mark.ros
+
+
+def _events(store: Path) -> list[dict[str, Any]]:
+    path = store / 'events.jsonl'
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _wait_for(predicate: Any, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out waiting for {what}')
+        time.sleep(0.02)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is dead for our purpose
+    stat = Path(f'/proc/{pid}/stat')
+    return stat.exists() and stat.read_text().split(')')[-1].split()[0] != 'Z'
+
+
+def _supervise(config: Path, env: dict[str, str]) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
+        env=env,
+        cwd=config.parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+
+
+@pytest.fixture
+def reap() -> Any:
+    """Kill whatever a test started, even when it fails."""
+    procs: list[subprocess.Popen[bytes]] = []
+    yield procs
+    for proc in procs:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_signal_stops_supervisor_and_its_node(
+    sig: signal.Signals, tmp_path: Path, ros_domain: int, reap: list[Any]
+) -> None:
+    config = prepare(tmp_path, 'rory', interval=0.5, pace='paced')
+    store = tmp_path / 'store-rory'
+    sup = _supervise(config, scenario_env(ros_domain))
+    reap.append(sup)
+    _wait_for(
+        lambda: any(e.get('new') == 'RUNNING' for e in _events(store)), 30, 'node RUNNING'
+    )
+    node_pid = next(e['pid'] for e in _events(store) if e['kind'] == 'spawn')
+    _wait_for(
+        lambda: any(e['kind'] == 'checkpoint' for e in _events(store)), 10, 'a checkpoint'
+    )
+    sup.send_signal(sig)
+    out, _ = sup.communicate(timeout=20)
+    assert sup.returncode == 0, out.decode()
+    assert not _alive(node_pid), 'the node outlived its supervisor'
+    text = out.decode()
+    assert f'stopping ({sig.name})' in text
+    assert 'integrator: STOPPING -> STOPPED' in text
+    assert 'terminate called' not in text
+
+
+def test_crash_loop_backs_off_then_gives_up(
+    tmp_path: Path, ros_domain: int, reap: list[Any]
+) -> None:
+    config = tmp_path / 'crashy.yaml'
+    config.write_text(
+        yaml.safe_dump(
+            {
+                'nodes': [
+                    {
+                        'name': 'crashy',
+                        'command': ['python', '-c', 'import sys; sys.exit(3)'],
+                        'method': 'restart',
+                        'backoff': {'step': 0.1, 'max_restarts': 2},
+                    }
+                ]
+            }
+        )
+    )
+    sup = _supervise(config, scenario_env(ros_domain))
+    reap.append(sup)
+    out, _ = sup.communicate(timeout=60)
+    text = out.decode()
+    assert sup.returncode == 1, text
+    events = _events(tmp_path / '.rory')
+    assert [e['code'] for e in events if e['kind'] == 'exit'] == [3, 3, 3]
+    states = [e['new'] for e in events if e['kind'] == 'state']
+    assert 'BACKOFF' in states and states[-3:] == ['FATAL', 'STOPPING', 'STOPPED']
+    assert 'giving up' in text
+
+
+def test_clean_exit_is_not_a_crash(tmp_path: Path, ros_domain: int, reap: list[Any]) -> None:
+    config = tmp_path / 'done.yaml'
+    config.write_text(
+        yaml.safe_dump(
+            {'nodes': [{'name': 'done', 'command': ['python', '-c', 'pass'], 'method': 'rory'}]}
+        )
+    )
+    sup = _supervise(config, scenario_env(ros_domain))
+    reap.append(sup)
+    out, _ = sup.communicate(timeout=30)
+    assert sup.returncode == 0, out.decode()
+    events = _events(tmp_path / '.rory')
+    assert [e['kind'] for e in events].count('spawn') == 1
+    assert 'EXITED' in [e['new'] for e in events if e['kind'] == 'state']
+
+
+@pytest.mark.parametrize(
+    ('node', 'field'),
+    [
+        ({'name': 'n', 'command': ['x'], 'method': 'respawn'}, 'nodes[0].method'),
+        ({'name': 'n', 'command': ['x'], 'replay': 'slow'}, 'nodes[0].replay'),
+        ({'name': 'n', 'command': ['x'], 'checkpoint_interval': 0}, 'nodes[0].checkpoint_interval'),
+        ({'name': '/bad', 'command': ['x']}, 'nodes[0].name'),
+        ({'name': 'n'}, 'nodes[0].command'),
+    ],
+)
+def test_bad_config_exits_2_naming_file_and_field(
+    node: dict[str, Any], field: str, tmp_path: Path
+) -> None:
+    config = tmp_path / 'bad.yaml'
+    config.write_text(yaml.safe_dump({'nodes': [node]}))
+    proc = subprocess.run(
+        [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert proc.returncode == 2
+    assert f'{config}: {field}:' in proc.stderr
+    assert not (tmp_path / '.rory').exists(), 'a bad config must not touch the store'

@@ -1,0 +1,535 @@
+"""Tests of the runtime <-> supervisor protocol: envelopes, status messages, input specs."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+from std_msgs.msg import UInt8MultiArray
+
+from rory_runtime.errors import ProtocolError
+from rory_runtime.protocol import (
+    FLAG_RELAY,
+    SEQ_MASK,
+    EnvelopeKind,
+    InputSpec,
+    Method,
+    Msg,
+    Release,
+    StatusKind,
+    Sync,
+    decode_status,
+    encode_status,
+    message_id,
+    pack_msg,
+    pack_release,
+    pack_sync,
+    replay_topic,
+    ring_depth,
+    status_topic,
+    unpack,
+    window_size,
+)
+
+CDR_PREFIX = struct.Struct('<4sIII')
+CDR_LE = b'\x00\x01\x00\x00'
+
+
+def wrap(payload: bytes, *, declared: int | None = None, ndim: int = 0) -> bytes:
+    """A UInt8MultiArray CDR around ``payload``, built independently of the module."""
+    length = len(payload) if declared is None else declared
+    return CDR_PREFIX.pack(CDR_LE, ndim, 0, length) + payload
+
+
+def payload_of(raw: bytes) -> bytes:
+    return raw[CDR_PREFIX.size :]
+
+
+def sample_msg(**changes: object) -> bytes:
+    fields: dict[str, object] = {
+        'topic': '/count',
+        'recv_ns': 1_700_000_000_123_456_789,
+        'source_ns': 1_700_000_000_000_000_001,
+        'seq': 42,
+        'data': b'\x00\x01\x00\x00\x2a\x00\x00\x00\x00\x00\x00\x00',
+        'flags': 0,
+    }
+    fields.update(changes)
+    return pack_msg(7, **fields)  # type: ignore[arg-type]
+
+
+VALID_ENVELOPES = [
+    pytest.param(pack_sync(3, 0xDEADBEEF), id='sync'),
+    pytest.param(sample_msg(), id='msg'),
+    pytest.param(sample_msg(data=b'', topic='/t'), id='msg-empty-data'),
+    pytest.param(sample_msg(data=b'\x01\x02\x03', topic='/odd'), id='msg-odd-length'),
+    pytest.param(pack_release(9, 12, 345), id='release'),
+]
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+def test_sync_round_trips_every_field() -> None:
+    assert unpack(pack_sync(4_000_000_000, 2**64 - 1)) == Sync(4_000_000_000, 2**64 - 1)
+
+
+def test_release_round_trips_every_field() -> None:
+    assert unpack(pack_release(2**32 - 1, 10**10 - 1, 2**64 - 1)) == Release(
+        2**32 - 1, 10**10 - 1, 2**64 - 1
+    )
+
+
+def test_msg_round_trips_every_field() -> None:
+    raw = pack_msg(
+        17,
+        topic='/robot/odom',
+        recv_ns=-5,
+        source_ns=2**63 - 1,
+        seq=123_456,
+        data=b'\x00\x01\x00\x00payload',
+        flags=FLAG_RELAY,
+    )
+    assert unpack(raw) == Msg(
+        incarnation=17,
+        flags=FLAG_RELAY,
+        recv_ns=-5,
+        source_ns=2**63 - 1,
+        seq=123_456,
+        topic='/robot/odom',
+        data=b'\x00\x01\x00\x00payload',
+    )
+
+
+def test_msg_round_trips_empty_data() -> None:
+    env = unpack(sample_msg(data=b''))
+    assert isinstance(env, Msg)
+    assert env.data == b''
+    assert env.topic == '/count'
+
+
+def test_msg_round_trips_unicode_topic() -> None:
+    topic = '/ロボット/速度_ü'
+    env = unpack(sample_msg(topic=topic, data=b'xyz'))
+    assert isinstance(env, Msg)
+    assert env.topic == topic
+    assert env.data == b'xyz'
+
+
+@pytest.mark.parametrize(
+    ('seq', 'stored'),
+    [(0, 0), (2**32 - 1, 2**32 - 1), (2**32, 0), (2**32 + 5, 5), (2**40 + 7, 7), (-1, 2**32 - 1)],
+)
+def test_msg_masks_seq_to_u32(seq: int, stored: int) -> None:
+    env = unpack(sample_msg(seq=seq))
+    assert isinstance(env, Msg)
+    assert env.seq == stored == seq & SEQ_MASK
+
+
+def test_msg_ident_is_source_ns_and_seq() -> None:
+    env = unpack(sample_msg(source_ns=99, seq=2**32 + 3))
+    assert isinstance(env, Msg)
+    assert env.ident == (99, 3)
+
+
+@pytest.mark.parametrize('raw', VALID_ENVELOPES)
+@pytest.mark.parametrize('padding', [1, 2, 3])
+def test_unpack_accepts_up_to_three_bytes_of_cdr_padding(raw: bytes, padding: int) -> None:
+    assert unpack(raw + b'\x00' * padding) == unpack(raw)
+
+
+@pytest.mark.parametrize('raw', VALID_ENVELOPES)
+@pytest.mark.parametrize('padding', [4, 5, 8, 100])
+def test_unpack_refuses_four_or_more_trailing_bytes(raw: bytes, padding: int) -> None:
+    with pytest.raises(ProtocolError):
+        unpack(raw + b'\x00' * padding)
+
+
+def test_padding_is_not_part_of_msg_data() -> None:
+    env = unpack(sample_msg(data=b'\x05') + b'\xaa\xbb\xcc')
+    assert isinstance(env, Msg)
+    assert env.data == b'\x05'
+
+
+# --------------------------------------------------------------------------- CDR compatibility
+
+
+@pytest.mark.parametrize('raw', VALID_ENVELOPES)
+def test_envelope_is_exactly_rclpy_serialization_of_uint8multiarray(raw: bytes) -> None:
+    expected = bytes(serialize_message(UInt8MultiArray(data=payload_of(raw))))
+    assert raw == expected
+
+
+@pytest.mark.parametrize('raw', VALID_ENVELOPES)
+def test_envelope_deserializes_with_rclpy_as_uint8multiarray(raw: bytes) -> None:
+    msg = deserialize_message(raw, UInt8MultiArray)
+    assert bytes(msg.data) == payload_of(raw)
+    assert list(msg.layout.dim) == []
+    assert msg.layout.data_offset == 0
+
+
+def test_unpack_reads_what_rclpy_serializes() -> None:
+    payload = payload_of(sample_msg(topic='/x', data=b'abc'))
+    raw = bytes(serialize_message(UInt8MultiArray(data=payload)))
+    env = unpack(raw)
+    assert isinstance(env, Msg)
+    assert (env.topic, env.data) == ('/x', b'abc')
+
+
+# --------------------------------------------------------------------------- refusals
+
+
+@pytest.mark.parametrize('raw', VALID_ENVELOPES)
+def test_every_truncation_of_a_valid_envelope_raises_protocol_error(raw: bytes) -> None:
+    for n in range(len(raw)):
+        with pytest.raises(ProtocolError):
+            unpack(raw[:n])
+
+
+def fixed_part(raw: bytes) -> int:
+    """Length of an envelope payload without a MSG's data: every shorter cut is malformed."""
+    env = unpack(raw)
+    if isinstance(env, Msg):
+        return 8 + struct.calcsize('<BqqIH') + len(env.topic.encode())
+    return 8 + (8 if isinstance(env, Sync) else 16)
+
+
+@pytest.mark.parametrize('raw', VALID_ENVELOPES)
+def test_every_truncated_payload_rewrapped_raises_protocol_error(raw: bytes) -> None:
+    """A consistent UInt8MultiArray whose payload is cut short is still refused cleanly."""
+    payload = payload_of(raw)
+    for n in range(fixed_part(raw)):
+        with pytest.raises(ProtocolError):
+            unpack(wrap(payload[:n]))
+
+
+@pytest.mark.parametrize('raw', VALID_ENVELOPES)
+def test_every_truncated_payload_with_dds_padding_raises_protocol_error(raw: bytes) -> None:
+    """DDS pads to 4 bytes, so a short payload can arrive with 1-3 trailing bytes."""
+    payload = payload_of(raw)
+    for padding in (1, 2, 3):
+        for n in range(fixed_part(raw)):
+            with pytest.raises(ProtocolError):
+                unpack(wrap(payload[:n]) + b'\x00' * padding)
+
+
+def test_cutting_msg_data_only_shortens_the_data() -> None:
+    """MSG data runs to the end of the payload: a cut there is undetectable by design."""
+    raw = sample_msg(data=b'abcdef')
+    env = unpack(wrap(payload_of(raw)[:-2]))
+    assert isinstance(env, Msg)
+    assert env.data == b'abcd'
+
+
+def test_short_envelope_padded_to_24_bytes_raises_protocol_error() -> None:
+    # 5 bytes of payload ('RY', version, kind, 1 byte of incarnation) + 3 bytes DDS padding.
+    raw = wrap(b'RY\x01\x01\x00') + b'\x00\x00\x00'
+    assert len(raw) == 24
+    with pytest.raises(ProtocolError):
+        unpack(raw)
+
+
+@pytest.mark.parametrize('magic', [b'XY', b'ry', b'\x00\x00', b'YR'])
+def test_wrong_magic_raises_protocol_error(magic: bytes) -> None:
+    payload = payload_of(pack_sync(1, 2))
+    with pytest.raises(ProtocolError, match='magic'):
+        unpack(wrap(magic + payload[2:]))
+
+
+@pytest.mark.parametrize('version', [0, 2, 255])
+def test_wrong_version_raises_protocol_error(version: int) -> None:
+    payload = bytearray(payload_of(pack_sync(1, 2)))
+    payload[2] = version
+    with pytest.raises(ProtocolError, match='version'):
+        unpack(wrap(bytes(payload)))
+
+
+@pytest.mark.parametrize('kind', [0, 4, 5, 255])
+def test_unknown_kind_raises_protocol_error(kind: int) -> None:
+    assert kind not in {k.value for k in EnvelopeKind}
+    payload = bytearray(payload_of(pack_release(1, 2, 3)))
+    payload[3] = kind
+    with pytest.raises(ProtocolError, match='kind'):
+        unpack(wrap(bytes(payload)))
+
+
+def test_topic_length_past_the_end_raises_protocol_error() -> None:
+    raw = sample_msg(topic='/abc', data=b'')
+    payload = bytearray(payload_of(raw))
+    name_len_at = 8 + struct.calcsize('<Bqqi')  # head, then flags, recv_ns, source_ns, seq
+    assert struct.unpack_from('<H', payload, name_len_at) == (4,)
+    struct.pack_into('<H', payload, name_len_at, 5)
+    with pytest.raises(ProtocolError, match='past'):
+        unpack(wrap(bytes(payload)))
+
+
+def test_topic_that_is_not_utf8_raises_protocol_error() -> None:
+    payload = bytearray(payload_of(sample_msg(topic='/ab', data=b'')))
+    payload[-1] = 0xFF
+    with pytest.raises(ProtocolError):
+        unpack(wrap(bytes(payload)))
+
+
+def test_nonzero_dimension_count_raises_protocol_error() -> None:
+    with pytest.raises(ProtocolError):
+        unpack(wrap(payload_of(pack_sync(1, 2)), ndim=1))
+
+
+def test_big_endian_encapsulation_raises_protocol_error() -> None:
+    raw = b'\x00\x00' + pack_sync(1, 2)[2:]
+    with pytest.raises(ProtocolError):
+        unpack(raw)
+
+
+def test_declared_length_beyond_the_data_raises_protocol_error() -> None:
+    payload = payload_of(pack_sync(1, 2))
+    with pytest.raises(ProtocolError):
+        unpack(wrap(payload, declared=2**32 - 1))
+
+
+def _unpack_or_protocol_error(raw: bytes) -> None:
+    try:
+        env = unpack(raw)
+    except ProtocolError:
+        return
+    assert isinstance(env, Sync | Msg | Release)
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(st.binary(max_size=96))
+def test_arbitrary_bytes_unpack_or_raise_protocol_error(raw: bytes) -> None:
+    _unpack_or_protocol_error(raw)
+
+
+@st.composite
+def envelope_like(draw: st.DrawFn) -> bytes:
+    """Bytes that get past the cheap checks: a plausible CDR prefix, often a valid head."""
+    head = draw(
+        st.one_of(
+            st.binary(max_size=12),
+            st.builds(
+                lambda version, kind, inc: b'RY' + bytes([version, kind]) + inc,
+                st.sampled_from([1, 1, 1, 0, 2]),
+                st.sampled_from([1, 2, 3, 0, 4]),
+                st.binary(min_size=0, max_size=4),
+            ),
+        )
+    )
+    payload = head + draw(st.binary(max_size=40))
+    declared = draw(st.one_of(st.just(len(payload)), st.integers(0, 2**32 - 1)))
+    ndim = draw(st.sampled_from([0, 0, 0, 1]))
+    padding = draw(st.binary(max_size=5))
+    return wrap(payload, declared=declared, ndim=ndim) + padding
+
+
+@settings(max_examples=500, deadline=None, derandomize=True)
+@given(envelope_like())
+def test_envelope_like_bytes_unpack_or_raise_protocol_error(raw: bytes) -> None:
+    _unpack_or_protocol_error(raw)
+
+
+# --------------------------------------------------------------------------- status messages
+
+
+def test_status_round_trips_with_extra_fields() -> None:
+    text = encode_status(
+        StatusKind.HELLO, 'integrator', 3, inputs=[{'topic': '/a'}], restore_ms=1.5
+    )
+    assert decode_status(text) == {
+        'kind': 'hello',
+        'node': 'integrator',
+        'incarnation': 3,
+        'inputs': [{'topic': '/a'}],
+        'restore_ms': 1.5,
+    }
+
+
+@pytest.mark.parametrize('kind', list(StatusKind))
+def test_every_status_kind_round_trips(kind: StatusKind) -> None:
+    obj = decode_status(encode_status(kind, 'n', 0))
+    assert obj['kind'] == kind.value
+    assert StatusKind(obj['kind']) is kind
+
+
+def test_encode_status_is_compact_json_with_sorted_keys() -> None:
+    text = encode_status(StatusKind.SYNCED, 'n', 1, nonce=5)
+    assert text == '{"incarnation":1,"kind":"synced","node":"n","nonce":5}'
+    assert json.loads(text)['nonce'] == 5
+
+
+@pytest.mark.parametrize(
+    'text',
+    [
+        pytest.param('not json', id='not-json'),
+        pytest.param('', id='empty'),
+        pytest.param('{"kind": "hello", ', id='truncated'),
+        pytest.param('[1, 2]', id='array'),
+        pytest.param('"hello"', id='string'),
+        pytest.param('null', id='null'),
+        pytest.param('{"kind": "bogus", "node": "n", "incarnation": 1}', id='unknown-kind'),
+        pytest.param('{"node": "n", "incarnation": 1}', id='missing-kind'),
+        pytest.param('{"kind": "hello", "incarnation": 1}', id='missing-node'),
+        pytest.param('{"kind": "hello", "node": 5, "incarnation": 1}', id='node-not-str'),
+        pytest.param('{"kind": "hello", "node": "n"}', id='missing-incarnation'),
+        pytest.param('{"kind": "hello", "node": "n", "incarnation": "1"}', id='inc-not-int'),
+    ],
+)
+def test_decode_status_refuses_malformed_text(text: str) -> None:
+    with pytest.raises(ProtocolError):
+        decode_status(text)
+
+
+def test_topic_names() -> None:
+    assert status_topic('integrator') == '/rory/integrator/status'
+    assert replay_topic('integrator') == '/rory/integrator/replay'
+
+
+# --------------------------------------------------------------------------- input specs
+
+
+def test_input_spec_json_round_trip() -> None:
+    spec = InputSpec('/scan', 'sensor_msgs/msg/LaserScan', True, False, 10)
+    obj = spec.to_json()
+    assert obj == {
+        'topic': '/scan',
+        'type': 'sensor_msgs/msg/LaserScan',
+        'reliable': True,
+        'transient_local': False,
+        'depth': 10,
+    }
+    assert InputSpec.from_json(json.loads(json.dumps(obj))) == spec
+
+
+def test_input_spec_from_keep_all_qos_has_depth_zero() -> None:
+    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=50)
+    spec = InputSpec.from_qos('/a', 'std_msgs/msg/Int64', qos)
+    assert spec == InputSpec('/a', 'std_msgs/msg/Int64', True, False, 0)
+
+
+def test_input_spec_from_keep_last_qos_keeps_depth() -> None:
+    spec = InputSpec.from_qos('/a', 'std_msgs/msg/Int64', QoSProfile(depth=7))
+    assert spec.depth == 7
+    assert spec.reliable is True
+    assert spec.transient_local is False
+
+
+def test_input_spec_from_best_effort_qos_is_not_reliable() -> None:
+    qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
+    assert InputSpec.from_qos('/a', 'std_msgs/msg/Int64', qos).reliable is False
+
+
+def test_input_spec_from_transient_local_qos() -> None:
+    qos = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    spec = InputSpec.from_qos('/map', 'nav_msgs/msg/OccupancyGrid', qos)
+    assert spec.transient_local is True
+    assert spec.depth == 1
+
+
+@pytest.mark.parametrize(
+    'obj',
+    [
+        pytest.param(None, id='none'),
+        pytest.param([], id='list'),
+        pytest.param('topic', id='string'),
+        pytest.param({}, id='empty'),
+        pytest.param(
+            {'type': 'a/msg/B', 'reliable': True, 'transient_local': False, 'depth': 1},
+            id='missing-topic',
+        ),
+        pytest.param(
+            {'topic': '/a', 'reliable': True, 'transient_local': False, 'depth': 1},
+            id='missing-type',
+        ),
+        pytest.param(
+            {'topic': '/a', 'type': 'a/msg/B', 'transient_local': False, 'depth': 1},
+            id='missing-reliable',
+        ),
+        pytest.param(
+            {'topic': '/a', 'type': 'a/msg/B', 'reliable': True, 'depth': 1},
+            id='missing-transient-local',
+        ),
+        pytest.param(
+            {'topic': '/a', 'type': 'a/msg/B', 'reliable': True, 'transient_local': False},
+            id='missing-depth',
+        ),
+        pytest.param(
+            {'topic': '/a', 'type': 'a/msg/B', 'reliable': 1, 'transient_local': 0, 'depth': 'x'},
+            id='depth-not-int',
+        ),
+        pytest.param(
+            {'topic': '/a', 'type': 'a/msg/B', 'reliable': 1, 'transient_local': 0, 'depth': None},
+            id='depth-none',
+        ),
+    ],
+)
+def test_input_spec_from_json_refuses_malformed(obj: object) -> None:
+    with pytest.raises(ProtocolError):
+        InputSpec.from_json(obj)
+
+
+def test_input_spec_from_json_refuses_string_for_boolean_field() -> None:
+    """'Raises ProtocolError: ill-typed fields'; bool('false') would silently be True."""
+    obj = {
+        'topic': '/a',
+        'type': 'std_msgs/msg/Int64',
+        'reliable': 'false',
+        'transient_local': False,
+        'depth': 1,
+    }
+    with pytest.raises(ProtocolError):
+        InputSpec.from_json(obj)
+
+
+@pytest.mark.parametrize('depth', [0, 1, 5, 10, 100, 255, 256, 1000, 100_000])
+def test_window_exceeds_ring_depth(depth: int) -> None:
+    spec = InputSpec('/a', 'std_msgs/msg/Int64', True, False, depth)
+    assert ring_depth(spec) < window_size(spec)
+
+
+@pytest.mark.parametrize('depth', [1, 5, 10, 1000])
+def test_ring_holds_more_than_the_node_queue(depth: int) -> None:
+    spec = InputSpec('/a', 'std_msgs/msg/Int64', True, False, depth)
+    assert ring_depth(spec) > depth
+
+
+def test_keep_all_input_gets_a_bounded_ring() -> None:
+    spec = InputSpec('/a', 'std_msgs/msg/Int64', True, False, 0)
+    assert ring_depth(spec) > 0
+    assert window_size(spec) > ring_depth(spec)
+
+
+# --------------------------------------------------------------------------- identities, methods
+
+
+def test_message_id_masks_seq() -> None:
+    info = {'source_timestamp': 1_700_000_000_000_000_000, 'publication_sequence_number': 2**32 + 9}
+    assert message_id(info) == (1_700_000_000_000_000_000, 9)
+
+
+def test_message_id_of_small_seq_is_unchanged() -> None:
+    assert message_id({'source_timestamp': 5, 'publication_sequence_number': 3}) == (5, 3)
+
+
+@pytest.mark.parametrize(
+    ('method', 'checkpoints', 'logs'),
+    [
+        (Method.RORY, True, True),
+        (Method.RESTART, False, False),
+        (Method.CHECKPOINT, True, False),
+        (Method.REPLAY, False, True),
+    ],
+)
+def test_method_checkpoints_and_logs_truth_table(
+    method: Method, checkpoints: bool, logs: bool
+) -> None:
+    assert method.checkpoints is checkpoints
+    assert method.logs is logs
+
+
+def test_method_table_covers_every_method() -> None:
+    assert {m.value for m in Method} == {'rory', 'restart', 'checkpoint', 'replay'}

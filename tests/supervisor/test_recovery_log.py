@@ -1,0 +1,300 @@
+"""Tests of absorbed identities, the recovery log R and the timing breakdown."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from rclpy.serialization import serialize_message
+from std_msgs.msg import Int64
+
+from rory_runtime.log import LogEntry, SegmentStore, read_segment
+from rory_runtime.store import Checkpoint, CheckpointStore
+from rory_runtime.supervisor.recovery import RecoveryLog, Timings, absorbed_identities
+
+NODE = 'integrator'
+INT64 = 'std_msgs/msg/Int64'
+
+
+def int64(value: int) -> bytes:
+    return bytes(serialize_message(Int64(data=value)))
+
+
+def entry(topic: str, source_ns: int, seq: int, recv_ns: int | None = None) -> LogEntry:
+    recv = source_ns + 1_000 if recv_ns is None else recv_ns
+    return LogEntry(topic, INT64, recv, source_ns, seq, int64(seq))
+
+
+@pytest.fixture
+def segments(tmp_path: Path) -> SegmentStore:
+    return SegmentStore(tmp_path / 'store', NODE)
+
+
+@pytest.fixture
+def checkpoints(tmp_path: Path) -> CheckpointStore:
+    return CheckpointStore(tmp_path / 'store', NODE, keep=5)
+
+
+def write_segment(segments: SegmentStore, n: int, entries: list[LogEntry]) -> None:
+    with segments.open(n) as writer:
+        for e in entries:
+            writer.write(e.topic, e.msgtype, e.recv_ns, e.source_ns, e.seq, e.data)
+
+
+def write_checkpoint(
+    checkpoints: CheckpointStore,
+    seq: int,
+    cut: int | None,
+    windows: dict[str, list[tuple[int, int]]],
+) -> Path:
+    return checkpoints.write(
+        Checkpoint(
+            node=NODE,
+            seq=seq,
+            incarnation=1,
+            created_ns=1_700_000_000_000_000_000,
+            manifest='sha256:test',
+            method='rory',
+            cut=cut,
+            windows=windows,
+            vars_blob=b'',
+        )
+    )
+
+
+# --------------------------------------------------------------------------- absorbed_identities
+
+
+def test_absorbed_identities_empty_store(
+    segments: SegmentStore, checkpoints: CheckpointStore
+) -> None:
+    assert absorbed_identities(checkpoints, segments) == {}
+
+
+def test_absorbed_identities_without_checkpoint_are_all_segments(
+    segments: SegmentStore, checkpoints: CheckpointStore
+) -> None:
+    write_segment(segments, 1, [entry('/a', 10, 1), entry('/b', 20, 1)])
+    write_segment(segments, 2, [entry('/a', 11, 2)])
+    write_segment(segments, 3, [entry('/b', 21, 2), entry('/a', 12, 3)])
+    assert absorbed_identities(checkpoints, segments) == {
+        '/a': {(10, 1), (11, 2), (12, 3)},
+        '/b': {(20, 1), (21, 2)},
+    }
+
+
+def test_absorbed_identities_union_checkpoint_windows_and_segments_after_cut(
+    segments: SegmentStore, checkpoints: CheckpointStore
+) -> None:
+    write_segment(segments, 1, [entry('/a', 10, 1)])
+    write_segment(segments, 2, [entry('/a', 11, 2), entry('/b', 20, 1)])
+    write_segment(segments, 3, [entry('/a', 12, 3), entry('/c', 30, 1)])
+    write_checkpoint(checkpoints, 1, cut=2, windows={'/a': [(11, 2)], '/d': [(40, 7)]})
+    assert absorbed_identities(checkpoints, segments) == {
+        '/a': {(11, 2), (12, 3)},  # (10, 1) is in segment 1, before the cut, not in a window
+        '/c': {(30, 1)},
+        '/d': {(40, 7)},
+    }
+
+
+def test_absorbed_identities_use_the_newest_checkpoint(
+    segments: SegmentStore, checkpoints: CheckpointStore
+) -> None:
+    write_segment(segments, 1, [entry('/a', 10, 1)])
+    write_segment(segments, 2, [entry('/a', 11, 2)])
+    write_checkpoint(checkpoints, 1, cut=0, windows={'/old': [(1, 1)]})
+    write_checkpoint(checkpoints, 2, cut=1, windows={'/a': [(10, 1)]})
+    assert absorbed_identities(checkpoints, segments) == {'/a': {(10, 1), (11, 2)}}
+
+
+def test_absorbed_identities_skip_an_unreadable_newest_checkpoint(
+    segments: SegmentStore, checkpoints: CheckpointStore
+) -> None:
+    write_segment(segments, 1, [entry('/a', 10, 1)])
+    write_segment(segments, 2, [entry('/a', 11, 2)])
+    write_segment(segments, 3, [entry('/a', 12, 3)])
+    write_checkpoint(checkpoints, 1, cut=1, windows={'/a': [(10, 1)], '/w1': [(5, 5)]})
+    newest = write_checkpoint(checkpoints, 2, cut=2, windows={'/w2': [(6, 6)]})
+    data = bytearray(newest.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    newest.write_bytes(bytes(data))
+    assert absorbed_identities(checkpoints, segments) == {
+        '/a': {(10, 1), (11, 2), (12, 3)},
+        '/w1': {(5, 5)},
+    }
+
+
+def test_absorbed_identities_checkpoint_without_cut_counts_every_segment(
+    segments: SegmentStore, checkpoints: CheckpointStore
+) -> None:
+    write_segment(segments, 1, [entry('/a', 10, 1)])
+    write_checkpoint(checkpoints, 1, cut=None, windows={'/a': [(9, 9)]})
+    assert absorbed_identities(checkpoints, segments) == {'/a': {(9, 9), (10, 1)}}
+
+
+# --------------------------------------------------------------------------- RecoveryLog
+
+
+def test_recovery_log_opens_the_next_segment(segments: SegmentStore) -> None:
+    write_segment(segments, 1, [entry('/a', 10, 1)])
+    write_segment(segments, 2, [])
+    rlog = RecoveryLog(segments, {})
+    assert rlog.number == 3
+    assert segments.path(3).is_dir()
+    assert not rlog.sealed
+    rlog.close()
+
+
+def test_recovery_log_writes_new_entries_in_order(segments: SegmentStore) -> None:
+    rlog = RecoveryLog(segments, {})
+    added = [entry('/a', 10, 1), entry('/b', 5, 9), entry('/a', 11, 2), entry('/b', 6, 10)]
+    for e in added:
+        rlog.add(e)
+    assert rlog.entries == added
+    # Durable before sealing: a killed supervisor leaves a readable segment.
+    assert list(read_segment(segments.path(rlog.number))) == added
+    rlog.seal()
+    assert list(read_segment(segments.path(rlog.number))) == added
+    assert rlog.dropped_known == 0
+
+
+def test_recovery_log_drops_identities_already_known(segments: SegmentStore) -> None:
+    known = {'/a': {(10, 1), (11, 2)}}
+    rlog = RecoveryLog(segments, known)
+    rlog.add_many([entry('/a', 10, 1), entry('/a', 12, 3), entry('/a', 11, 2)])
+    assert rlog.entries == [entry('/a', 12, 3)]
+    assert rlog.dropped_known == 2
+    rlog.seal()
+    assert list(read_segment(segments.path(rlog.number))) == [entry('/a', 12, 3)]
+
+
+def test_recovery_log_known_identities_are_per_topic(segments: SegmentStore) -> None:
+    rlog = RecoveryLog(segments, {'/a': {(10, 1)}})
+    rlog.add(entry('/b', 10, 1))
+    assert rlog.entries == [entry('/b', 10, 1)]
+    assert rlog.dropped_known == 0
+    rlog.close()
+
+
+def test_recovery_log_drops_an_entry_added_twice(segments: SegmentStore) -> None:
+    rlog = RecoveryLog(segments, {})
+    first = entry('/a', 10, 1, recv_ns=100)
+    again = entry('/a', 10, 1, recv_ns=200)  # same identity, received again (ring + live)
+    rlog.add(first)
+    rlog.add(again)
+    rlog.add(first)
+    assert rlog.entries == [first]
+    assert rlog.dropped_known == 2
+    rlog.seal()
+    assert list(read_segment(segments.path(rlog.number))) == [first]
+
+
+def test_recovery_log_seal_closes_the_segment(segments: SegmentStore) -> None:
+    rlog = RecoveryLog(segments, {})
+    rlog.add(entry('/a', 10, 1))
+    path = segments.path(rlog.number)
+    assert not (path / 'metadata.yaml').exists()
+    rlog.seal()
+    assert rlog.sealed
+    assert (path / 'metadata.yaml').is_file()
+    rlog.seal()  # idempotent
+    assert rlog.sealed
+
+
+def test_recovery_log_empty_seal_closes_the_segment(segments: SegmentStore) -> None:
+    rlog = RecoveryLog(segments, {})
+    rlog.seal()
+    path = segments.path(rlog.number)
+    assert (path / 'metadata.yaml').is_file()
+    assert list(read_segment(path)) == []
+
+
+def test_recovery_log_close_seals(segments: SegmentStore) -> None:
+    rlog = RecoveryLog(segments, {})
+    rlog.close()
+    assert rlog.sealed
+    assert (segments.path(rlog.number) / 'metadata.yaml').is_file()
+
+
+def test_recovery_log_after_seal_entries_go_to_relay(segments: SegmentStore) -> None:
+    rlog = RecoveryLog(segments, {'/a': {(1, 1)}})
+    logged = entry('/a', 10, 1)
+    rlog.add(logged)
+    rlog.seal()
+    late = [entry('/a', 11, 2), entry('/b', 3, 3)]
+    rlog.add_many(late)
+    rlog.add(entry('/a', 11, 2))  # still deduplicated after the seal
+    rlog.add(entry('/a', 1, 1))  # known before
+    assert list(rlog.relay) == late
+    assert rlog.entries == [logged]
+    assert rlog.dropped_known == 2
+    assert list(read_segment(segments.path(rlog.number))) == [logged]
+
+
+def test_recovery_log_records_added_identities_as_known(segments: SegmentStore) -> None:
+    known: dict[str, set[tuple[int, int]]] = {}
+    rlog = RecoveryLog(segments, known)
+    rlog.add(entry('/a', 10, 1))
+    assert known == {'/a': {(10, 1)}}
+    rlog.close()
+
+
+# --------------------------------------------------------------------------- Timings
+
+
+def test_timings_breakdown() -> None:
+    t = Timings(
+        crashed=100.0,
+        s1_done=100.001,
+        s2_done=100.003,
+        spawned=100.010,
+        hello=100.210,
+        restore_ms=50.0,
+        synced=100.260,
+        release_sent=100.360,
+        released=100.370,
+        s4_done=100.380,
+    )
+    assert t.breakdown() == pytest.approx(
+        {
+            'total_ms': 380.0,
+            's1_ms': 1.0,
+            's2_ms': 2.0,
+            'restart_ms': 150.0,
+            'restore_ms': 50.0,
+            'sync_ms': 50.0,
+            'replay_ms': 100.0,
+            's4_ms': 20.0,
+        },
+        abs=0.011,
+    )
+
+
+def test_timings_total_is_crash_to_s4_done() -> None:
+    t = Timings(crashed=5.0, s4_done=7.5)
+    assert t.breakdown()['total_ms'] == pytest.approx(2500.0)
+
+
+def test_timings_unreached_steps_are_zero() -> None:
+    assert Timings(crashed=1.0).breakdown() == {
+        'total_ms': 0.0,
+        's1_ms': 0.0,
+        's2_ms': 0.0,
+        'restart_ms': 0.0,
+        'restore_ms': 0.0,
+        'sync_ms': 0.0,
+        'replay_ms': 0.0,
+        's4_ms': 0.0,
+    }
+
+
+def test_timings_s4_without_release_counts_from_hello() -> None:
+    """Methods without replay never send RELEASE."""
+    t = Timings(crashed=0.0, spawned=1.0, hello=1.5, s4_done=1.75)
+    assert t.breakdown()['s4_ms'] == pytest.approx(250.0)
+
+
+def test_timings_restart_never_negative() -> None:
+    t = Timings(crashed=0.0, spawned=1.0, hello=1.01, restore_ms=50.0)
+    assert t.breakdown()['restart_ms'] == 0.0
+    assert t.breakdown()['restore_ms'] == 50.0

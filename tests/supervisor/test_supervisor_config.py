@@ -1,0 +1,389 @@
+"""Tests of the supervisor configuration file."""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from rory_runtime.errors import ConfigError
+from rory_runtime.protocol import Method, ReplayPace
+from rory_runtime.supervisor.config import (
+    Backoff,
+    NodeConfig,
+    SafeAction,
+    SupervisorConfig,
+    load_config,
+)
+
+FULL = """\
+nodes:
+  - name: integrator
+    command: [python, out/integrator.py, --rate, '5']
+    method: checkpoint
+    checkpoint_interval: 0.5
+    replay: fast
+    restart_on_clean_exit: true
+    env: {FOO: bar, COUNT: 3}
+    backoff:
+      initial: 0.1
+      step: 0.2
+      maximum: 4
+      stable_after: 3
+      max_restarts: 7
+  - name: counter_2
+    command: ./run.sh --x 1
+    method: replay
+safe_state:
+  - topic: /e_stop
+    type: std_msgs/msg/Bool
+    hold: {data: true}
+    release: {data: false}
+    rate: 10
+  - topic: /cmd_vel
+    type: geometry_msgs/msg/Twist
+    hold: {linear: {x: 0.0}}
+store: state/rory
+dds: inherit
+"""
+
+MINIMAL = """\
+nodes:
+  - name: a
+    command: [python3, a.py]
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = 'rory.yaml') -> Path:
+    folder = tmp_path / 'conf'
+    folder.mkdir(exist_ok=True)
+    path = folder / name
+    path.write_text(textwrap.dedent(text), encoding='utf-8')
+    return path
+
+
+def refusal(path: Path) -> ConfigError:
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    err = info.value
+    assert err.path == path.resolve()
+    assert str(path.resolve()) in str(err)
+    assert err.field in str(err)
+    return err
+
+
+def test_full_example_sets_every_field(tmp_path: Path) -> None:
+    path = write(tmp_path, FULL)
+    config = load_config(path)
+    folder = path.parent.resolve()
+    assert config == SupervisorConfig(
+        path=path.resolve(),
+        folder=folder,
+        nodes=(
+            NodeConfig(
+                name='integrator',
+                command=(sys.executable, 'out/integrator.py', '--rate', '5'),
+                method=Method.CHECKPOINT,
+                checkpoint_interval=0.5,
+                replay=ReplayPace.FAST,
+                restart_on_clean_exit=True,
+                env={'FOO': 'bar', 'COUNT': '3'},
+                backoff=Backoff(
+                    initial=0.1, step=0.2, maximum=4.0, stable_after=3.0, max_restarts=7
+                ),
+            ),
+            NodeConfig(
+                name='counter_2',
+                command=('./run.sh', '--x', '1'),
+                method=Method.REPLAY,
+            ),
+        ),
+        safe_state=(
+            SafeAction(
+                topic='/e_stop',
+                msgtype='std_msgs/msg/Bool',
+                hold={'data': True},
+                release={'data': False},
+                rate=10.0,
+            ),
+            SafeAction(
+                topic='/cmd_vel',
+                msgtype='geometry_msgs/msg/Twist',
+                hold={'linear': {'x': 0.0}},
+                release=None,
+                rate=None,
+            ),
+        ),
+        store=folder / 'state' / 'rory',
+        dds='inherit',
+    )
+    assert isinstance(config.nodes[0].method, Method)
+    assert isinstance(config.nodes[0].replay, ReplayPace)
+    assert isinstance(config.nodes[0].backoff.maximum, float)
+
+
+def test_defaults(tmp_path: Path) -> None:
+    path = write(tmp_path, MINIMAL)
+    config = load_config(path)
+    (node,) = config.nodes
+    assert node.name == 'a'
+    assert node.method is Method.RORY
+    assert node.checkpoint_interval == 2.0
+    assert node.replay is ReplayPace.PACED
+    assert node.restart_on_clean_exit is False
+    assert dict(node.env) == {}
+    assert node.backoff == Backoff()
+    assert Backoff() == Backoff(
+        initial=0.0, step=0.5, maximum=8.0, stable_after=10.0, max_restarts=5
+    )
+    assert config.safe_state == ()
+    assert config.store == path.parent.resolve() / '.rory'
+    assert config.dds == 'fast_rediscovery'
+
+
+def test_empty_optional_sections_are_defaults(tmp_path: Path) -> None:
+    path = write(tmp_path, MINIMAL + '    env:\n    backoff:\nsafe_state:\n')
+    config = load_config(path)
+    assert config.safe_state == ()
+    assert dict(config.nodes[0].env) == {}
+    assert config.nodes[0].backoff == Backoff()
+
+
+@pytest.mark.parametrize('python', ['python', 'python3', 'python3.11'])
+def test_python_is_resolved_to_the_running_interpreter(tmp_path: Path, python: str) -> None:
+    path = write(tmp_path, f'nodes: [{{name: a, command: [{python}, -m, x]}}]\n')
+    assert load_config(path).nodes[0].command == (sys.executable, '-m', 'x')
+
+
+def test_python_in_a_command_string_is_resolved(tmp_path: Path) -> None:
+    path = write(tmp_path, 'nodes: [{name: a, command: python  node.py  --fast}]\n')
+    assert load_config(path).nodes[0].command == (sys.executable, 'node.py', '--fast')
+
+
+@pytest.mark.parametrize('program', ['/usr/bin/python3', 'python2', './python', 'ros2'])
+def test_other_programs_are_left_as_written(tmp_path: Path, program: str) -> None:
+    path = write(tmp_path, f'nodes: [{{name: a, command: [{program}, python]}}]\n')
+    assert load_config(path).nodes[0].command == (program, 'python')
+
+
+def test_store_is_relative_to_the_config_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = write(tmp_path, MINIMAL + 'store: ../data/./store\n')
+    elsewhere = tmp_path / 'elsewhere'
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    config = load_config(Path('..') / 'conf' / 'rory.yaml')
+    assert config.path == path.resolve()
+    assert config.folder == path.parent.resolve()
+    assert config.store == (tmp_path / 'data' / 'store').resolve()
+
+
+def test_absolute_store_is_kept(tmp_path: Path) -> None:
+    store = tmp_path / 'abs' / 'store'
+    path = write(tmp_path, MINIMAL + f'store: {store}\n')
+    assert load_config(path).store == store.resolve()
+
+
+def test_config_path_may_be_a_string(tmp_path: Path) -> None:
+    path = write(tmp_path, MINIMAL)
+    assert load_config(str(path)).path == path.resolve()
+
+
+# --------------------------------------------------------------------------- errors
+
+NODE = '  - name: a\n    command: [x]\n'
+
+ERRORS = [
+    # top level
+    ('- a\n- b\n', '(top level)'),
+    ('just text\n', '(top level)'),
+    ('', '(top level)'),
+    (MINIMAL + 'nodez: []\n', 'nodez'),
+    ('store: x\n', 'nodes'),
+    ('nodes: []\n', 'nodes'),
+    ('nodes: {a: 1}\n', 'nodes'),
+    ('nodes: a\n', 'nodes'),
+    (MINIMAL + 'store: ""\n', 'store'),
+    (MINIMAL + 'store: 5\n', 'store'),
+    (MINIMAL + 'dds: fast\n', 'dds'),
+    (MINIMAL + 'dds: 5\n', 'dds'),
+    (MINIMAL + 'safe_state: {topic: /x}\n', 'safe_state'),
+    # nodes
+    ('nodes: [5]\n', 'nodes[0]'),
+    ('nodes:\n' + NODE + '  - 5\n', 'nodes[1]'),
+    ('nodes:\n' + NODE + '    respawn: true\n', 'nodes[0].respawn'),
+    ('nodes:\n  - command: [x]\n', 'nodes[0].name'),
+    ('nodes:\n  - name: 1abc\n    command: [x]\n', 'nodes[0].name'),
+    ('nodes:\n  - name: a-b\n    command: [x]\n', 'nodes[0].name'),
+    ('nodes:\n  - name: _a\n    command: [x]\n', 'nodes[0].name'),
+    ('nodes:\n  - name: 5\n    command: [x]\n', 'nodes[0].name'),
+    ('nodes:\n  - name: ""\n    command: [x]\n', 'nodes[0].name'),
+    ('nodes:\n' + NODE + NODE, 'nodes[1].name'),
+    ('nodes:\n' + NODE + '  - name: b\n    command: [x]\n' + NODE, 'nodes[2].name'),
+    ('nodes:\n  - name: a\n', 'nodes[0].command'),
+    ('nodes:\n  - name: a\n    command: []\n', 'nodes[0].command'),
+    ('nodes:\n  - name: a\n    command: ""\n', 'nodes[0].command'),
+    ('nodes:\n  - name: a\n    command: [x, 1]\n', 'nodes[0].command'),
+    ('nodes:\n  - name: a\n    command: 5\n', 'nodes[0].command'),
+    ('nodes:\n  - name: a\n    command: {x: 1}\n', 'nodes[0].command'),
+    ('nodes:\n' + NODE + '    method: magic\n', 'nodes[0].method'),
+    ('nodes:\n' + NODE + '  - name: b\n    command: [x]\n    method: RORY\n', 'nodes[1].method'),
+    ('nodes:\n' + NODE + '    replay: slow\n', 'nodes[0].replay'),
+    ('nodes:\n' + NODE + '    checkpoint_interval: 0\n', 'nodes[0].checkpoint_interval'),
+    ('nodes:\n' + NODE + '    checkpoint_interval: -1\n', 'nodes[0].checkpoint_interval'),
+    ('nodes:\n' + NODE + '    checkpoint_interval: fast\n', 'nodes[0].checkpoint_interval'),
+    ('nodes:\n' + NODE + '    checkpoint_interval: true\n', 'nodes[0].checkpoint_interval'),
+    ('nodes:\n' + NODE + '    checkpoint_interval: .inf\n', 'nodes[0].checkpoint_interval'),
+    ('nodes:\n' + NODE + '    checkpoint_interval: .nan\n', 'nodes[0].checkpoint_interval'),
+    ('nodes:\n' + NODE + '    restart_on_clean_exit: 1\n', 'nodes[0].restart_on_clean_exit'),
+    ('nodes:\n' + NODE + '    restart_on_clean_exit: maybe\n', 'nodes[0].restart_on_clean_exit'),
+    ('nodes:\n' + NODE + '    env: [A, B]\n', 'nodes[0].env'),
+    ('nodes:\n' + NODE + '    env: {1: a}\n', 'nodes[0].env'),
+    ('nodes:\n' + NODE + '    backoff: 5\n', 'nodes[0].backoff'),
+    ('nodes:\n' + NODE + '    backoff: {jitter: 1}\n', 'nodes[0].backoff.jitter'),
+    ('nodes:\n' + NODE + '    backoff: {max_restarts: 0}\n', 'nodes[0].backoff.max_restarts'),
+    ('nodes:\n' + NODE + '    backoff: {max_restarts: -1}\n', 'nodes[0].backoff.max_restarts'),
+    ('nodes:\n' + NODE + '    backoff: {max_restarts: 1.5}\n', 'nodes[0].backoff.max_restarts'),
+    ('nodes:\n' + NODE + '    backoff: {max_restarts: true}\n', 'nodes[0].backoff.max_restarts'),
+    ('nodes:\n' + NODE + '    backoff: {max_restarts: "3"}\n', 'nodes[0].backoff.max_restarts'),
+    ('nodes:\n' + NODE + '    backoff: {initial: -1}\n', 'nodes[0].backoff.initial'),
+    ('nodes:\n' + NODE + '    backoff: {step: x}\n', 'nodes[0].backoff.step'),
+    ('nodes:\n' + NODE + '    backoff: {maximum: -0.5}\n', 'nodes[0].backoff.maximum'),
+    ('nodes:\n' + NODE + '    backoff: {stable_after: 0}\n', 'nodes[0].backoff.stable_after'),
+    # safe_state
+    (MINIMAL + 'safe_state: [5]\n', 'safe_state[0]'),
+    (MINIMAL + 'safe_state:\n  - {type: std_msgs/msg/Bool, hold: {}}\n', 'safe_state[0].topic'),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: e_stop, type: std_msgs/msg/Bool, hold: {}}\n',
+        'safe_state[0].topic',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: 5, type: std_msgs/msg/Bool, hold: {}}\n',
+        'safe_state[0].topic',
+    ),
+    (MINIMAL + 'safe_state:\n  - {topic: /e, hold: {}}\n', 'safe_state[0].type'),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/Bool, hold: {}}\n',
+        'safe_state[0].type',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/srv/Empty, hold: {}}\n',
+        'safe_state[0].type',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/bool, hold: {}}\n',
+        'safe_state[0].type',
+    ),
+    (MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool}\n', 'safe_state[0].hold'),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool, hold: [true]}\n',
+        'safe_state[0].hold',
+    ),
+    (
+        MINIMAL
+        + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool, hold: {}, release: true}\n',
+        'safe_state[0].release',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool, hold: {}, rate: 0}\n',
+        'safe_state[0].rate',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool, hold: {}, rate: -5}\n',
+        'safe_state[0].rate',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool, hold: {}, rate: x}\n',
+        'safe_state[0].rate',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool, hold: {}, qos: 1}\n',
+        'safe_state[0].qos',
+    ),
+    (
+        MINIMAL
+        + 'safe_state:\n'
+        + '  - {topic: /e, type: std_msgs/msg/Bool, hold: {}}\n'
+        + '  - {topic: /f, type: x, hold: {}}\n',
+        'safe_state[1].type',
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    ('text', 'field'), ERRORS, ids=[f'{f}-{i}' for i, (_, f) in enumerate(ERRORS)]
+)
+def test_invalid_field_raises_config_error_naming_file_and_field(
+    tmp_path: Path, text: str, field: str
+) -> None:
+    err = refusal(write(tmp_path, text))
+    assert err.field == field
+    assert err.reason
+
+
+def test_unknown_field_lists_the_allowed_ones(tmp_path: Path) -> None:
+    err = refusal(write(tmp_path, 'nodes:\n' + NODE + '    respawn: true\n'))
+    assert 'allowed' in err.reason
+    assert 'checkpoint_interval' in err.reason
+
+
+def test_duplicate_name_reason_names_the_node(tmp_path: Path) -> None:
+    err = refusal(write(tmp_path, 'nodes:\n' + NODE + NODE))
+    assert "'a'" in err.reason
+
+
+def test_missing_file_raises_config_error(tmp_path: Path) -> None:
+    path = tmp_path / 'nope.yaml'
+    err = refusal(path)
+    assert err.field == '(file)'
+    assert 'cannot read' in err.reason
+
+
+def test_directory_instead_of_file_raises_config_error(tmp_path: Path) -> None:
+    path = tmp_path / 'dir.yaml'
+    path.mkdir()
+    err = refusal(path)
+    assert err.field == '(file)'
+
+
+def test_invalid_yaml_raises_config_error(tmp_path: Path) -> None:
+    err = refusal(write(tmp_path, 'nodes: [a, b\n  x: : y\n'))
+    assert err.field == '(file)'
+    assert 'not valid YAML' in err.reason
+
+
+def test_file_that_is_not_utf8_raises_config_error(tmp_path: Path) -> None:
+    path = tmp_path / 'latin1.yaml'
+    path.write_bytes(b'nodes:\n  - name: n\xe9\n    command: [x]\n')
+    err = refusal(path)
+    assert err.field == '(file)'
+
+
+def test_method_of_unhashable_type_raises_config_error(tmp_path: Path) -> None:
+    err = refusal(write(tmp_path, 'nodes:\n' + NODE + '    method: [rory]\n'))
+    assert err.field == 'nodes[0].method'
+
+
+def test_replay_of_unhashable_type_raises_config_error(tmp_path: Path) -> None:
+    err = refusal(write(tmp_path, 'nodes:\n' + NODE + '    replay: {fast: 1}\n'))
+    assert err.field == 'nodes[0].replay'
+
+
+def test_unknown_keys_of_mixed_types_raise_config_error(tmp_path: Path) -> None:
+    err = refusal(write(tmp_path, MINIMAL + '1: x\nfoo: y\n'))
+    assert err.field in {'1', 'foo'}
+
+
+def test_node_name_with_trailing_newline_is_refused(tmp_path: Path) -> None:
+    """The name becomes a directory and topic name; '$' also matches before a final newline."""
+    err = refusal(write(tmp_path, 'nodes:\n  - name: "a\\n"\n    command: [x]\n'))
+    assert err.field == 'nodes[0].name'
+
+
+def test_safe_state_type_with_trailing_newline_is_refused(tmp_path: Path) -> None:
+    text = MINIMAL + 'safe_state:\n  - {topic: /e, type: "std_msgs/msg/Bool\\n", hold: {}}\n'
+    err = refusal(write(tmp_path, text))
+    assert err.field == 'safe_state[0].type'

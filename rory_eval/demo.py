@@ -21,7 +21,8 @@ METHODS = ('restart', 'checkpoint', 'replay', 'rory')
 def table(results: list[ScenarioResult]) -> str:
     """Markdown table of the results."""
     lines = [
-        '| method | final state correct | recovery time (ms) | messages lost | messages duplicated |',
+        '| method | final state correct | recovery time (ms) | messages lost '
+        '| messages duplicated |',
         '|---|---|---:|---:|---:|',
     ]
     for r in results:

@@ -97,8 +97,9 @@ def test_replay_kill_mid_run(tmp_path: Path, ros_domain: int) -> None:
     result = run('replay', (Kill(after=3.0),), tmp_path, domain_id=ros_domain, count=COUNT)
     _assert_exact(result)
     recovered = [e for e in result.events if e['kind'] == 'recovered']
+    hellos = [e for e in result.events if e['kind'] == 'hello']
     # replay-alone restores nothing and replays everything since the start
-    assert recovered[0]['restore_ms'] == 0.0
+    assert hellos[-1]['mode'] == 'recover' and hellos[-1]['restored'] is None
     assert recovered[0]['replayed'] >= 140
 
 

@@ -303,8 +303,7 @@ class Recovery:
             self.rlog = RecoveryLog(
                 self.segments, absorbed_identities(self.checkpoints, self.segments)
             )
-            backlog = self.ring.activate(self.rlog.add)
-            self.rlog.add_many(backlog)
+            self.ring.activate(self.rlog.add)
         self.timings.s2_done = time.monotonic()
 
     def again(self, crashed: float) -> None:

@@ -127,10 +127,11 @@ class RingTopic:
         return self.sub.get_publisher_count()
 
     def activate(self, sink: Sink) -> list[LogEntry]:
-        """Take everything held now, then stream new messages to ``sink``.
+        """Take everything held now; new messages go to ``sink`` from then on.
 
         Returns:
-            What the ring held (retained entries and DDS's history), in receive order.
+            What the ring held (retained entries and DDS's history), in receive order. The
+            caller must deliver it before anything ``sink`` receives: see :meth:`Ring.activate`.
         """
         with self._lock:
             held = list(self.retained)
@@ -171,6 +172,8 @@ class Ring:
         self._ctx = ring_ctx
         self.node_id = node_id
         self.topics: dict[str, RingTopic] = {}
+        self._order = threading.Lock()
+        self._sink: Sink | None = None
 
     def ensure(self, specs: Iterable[InputSpec]) -> None:
         """Have a reader for each input (a changed type or QoS replaces the reader)."""
@@ -186,13 +189,27 @@ class Ring:
         """Matched publishers per topic."""
         return {topic: t.publisher_count() for topic, t in self.topics.items()}
 
-    def activate(self, sink: Sink) -> list[LogEntry]:
-        """Activate every topic; what they held, merged in receive order."""
-        held: list[LogEntry] = []
-        for topic in self.topics.values():
-            held.extend(topic.activate(sink))
-        held.sort(key=lambda e: e.recv_ns)
-        return held
+    def activate(self, sink: Sink) -> None:
+        """Activate every topic: ``sink`` gets what they held, in receive order, then each new
+        message as it comes.
+
+        The ring's executor thread may take a new message before the backlog is delivered;
+        ``_deliver`` waits on the same lock, so nothing overtakes the backlog (under load it
+        did: a message applied before the one published just ahead of it).
+        """
+        with self._order:
+            self._sink = sink
+            held: list[LogEntry] = []
+            for topic in self.topics.values():
+                held.extend(topic.activate(self._deliver))
+            held.sort(key=lambda e: e.recv_ns)
+            for entry in held:
+                sink(entry)
+
+    def _deliver(self, entry: LogEntry) -> None:
+        with self._order:
+            if self._sink is not None:
+                self._sink(entry)
 
     def deactivate(self, topic: str | None = None) -> None:
         """Make one topic (or all) passive again."""

@@ -55,6 +55,7 @@ from rosbags.rosbag2.storage_mcap import (
 from rosbags.typesys import Stores, TypesysError, get_typestore
 
 from rory_runtime.errors import LogError
+from rory_runtime.fsutil import make_private_dir
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -577,7 +578,7 @@ class SegmentStore:
         if not 1 <= n <= _MAX_NUMBER:
             raise LogError(self.path(n), f'segment number {n} outside 1..{_MAX_NUMBER}')
         try:
-            _make_private_dir(self.dir)
+            make_private_dir(self.dir)
         except OSError as err:
             raise LogError(self.dir, f'cannot create: {err.strerror or err}') from None
         return SegmentWriter(self.path(n), typestore)
@@ -622,14 +623,3 @@ class SegmentStore:
                 raise LogError(path, f'cannot delete segment: {err}') from None
 
 
-def _make_private_dir(path: Path) -> None:
-    """Create path and its missing parents with mode 0700, whatever the umask."""
-    missing: list[Path] = []
-    current = path
-    while not current.exists():
-        missing.append(current)
-        current = current.parent
-    for directory in reversed(missing):
-        with suppress(FileExistsError):
-            directory.mkdir(mode=0o700)
-            os.chmod(directory, 0o700)

@@ -36,6 +36,7 @@ from typing import Final
 import msgpack
 
 from rory_runtime.errors import CheckpointError
+from rory_runtime.fsutil import fsync_dir, make_private_dir
 
 MAGIC: Final = b'RORYCKPT'
 FORMAT_VERSION: Final = 1
@@ -151,7 +152,7 @@ class CheckpointStore:
             msg = f'seq {ckpt.seq} is not above the newest checkpoint on disk ({newest})'
             raise CheckpointError(final, msg)
         try:
-            _make_private_dir(self.dir)
+            make_private_dir(self.dir)
             self._remove_stale_temps()
             self._write_atomic(final, data)
         except OSError as err:
@@ -228,7 +229,7 @@ class CheckpointStore:
         target = path.with_name(path.name + '.refused')
         with suppress(FileNotFoundError):
             os.replace(path, target)
-            _fsync_dir(self.dir)
+            fsync_dir(self.dir)
         return target
 
     def _seqs(self) -> list[int]:
@@ -256,7 +257,7 @@ class CheckpointStore:
             with suppress(OSError):
                 tmp.unlink()
             raise
-        _fsync_dir(self.dir)
+        fsync_dir(self.dir)
 
     def _remove_stale_temps(self) -> None:
         """Delete temporary files of writers that died before renaming them."""
@@ -474,27 +475,6 @@ def _windows_ok(windows: object) -> bool:
             ):
                 return False
     return True
-
-
-def _make_private_dir(path: Path) -> None:
-    """Create path and its missing parents with mode 0700, whatever the umask."""
-    missing: list[Path] = []
-    current = path
-    while not current.exists():
-        missing.append(current)
-        current = current.parent
-    for directory in reversed(missing):
-        with suppress(FileExistsError):
-            directory.mkdir(mode=0o700)
-            os.chmod(directory, 0o700)
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _temp_pid(name: str) -> int | None:

@@ -35,6 +35,7 @@ from std_msgs.msg import String, UInt8MultiArray
 from .. import protocol
 from ..dds import fast_rediscovery_env
 from ..errors import ProtocolError
+from ..fsutil import make_private_dir
 from ..log import SegmentStore, default_typestore
 from ..protocol import InputSpec, Mode, StatusKind
 from ..store import CheckpointStore
@@ -442,8 +443,7 @@ class Supervisor:
         # A fresh run must not mix with an earlier run's checkpoints and logs: set them aside
         # (the newest earlier run is kept under .previous/ for inspection).
         store = self.config.store
-        store.mkdir(parents=True, exist_ok=True, mode=0o700)
-        os.chmod(store, 0o700)
+        make_private_dir(store)
         previous = store / '.previous'
         for node in self.config.nodes:
             current = store / node.name
@@ -451,7 +451,7 @@ class Supervisor:
                 target = previous / node.name
                 if target.exists():
                     shutil.rmtree(target)
-                previous.mkdir(exist_ok=True, mode=0o700)
+                make_private_dir(previous)
                 current.rename(target)
                 _logger.info('%s %s: earlier run set aside in %s', LOG_PREFIX, node.name, target)
 

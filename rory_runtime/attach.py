@@ -81,6 +81,11 @@ N = TypeVar('N', bound=type[Node])
 SWITCH_CONFIRMATIONS = 3
 """Relayed messages that must also arrive live before a topic switches to its live reader."""
 
+RELAY_SILENCE_NS = 2_000_000_000
+"""A live message that waited this long for the relay means the relay is gone (its supervisor
+died): the topic switches to its live reader rather than stall. The window still rules out
+duplicates; only a publisher matched late could lose a message, which is logged."""
+
 
 @dataclass(frozen=True)
 class CheckpointSpec:
@@ -246,7 +251,7 @@ class _Handover:
 
     live_seen: set[MessageId] = field(default_factory=set)
     relayed: deque[MessageId] = field(default_factory=lambda: deque(maxlen=64))
-    confirmed: int = 0
+    last_relay_ns: int = 0
 
 
 class _IoWorker:
@@ -327,6 +332,7 @@ class NodeRuntime:
         self.node: Node | None = None
         self.lock = threading.RLock()
         self.released = False
+        self.released_ns = 0
         self.inputs: dict[str, _Input] = {}
         self.windows: dict[str, _Window] = {}
         self.shadow_topics: set[str] = set()
@@ -567,10 +573,17 @@ class NodeRuntime:
     def _on_live(self, inp: _Input, raw: bytes, info: dict[str, Any]) -> None:
         ident = protocol.message_id(info)
         if not self.released or inp.topic in self.shadow_topics:
-            self.pending_live[inp.topic].append((ident, raw, info))
+            pending = self.pending_live[inp.topic]
+            pending.append((ident, raw, info))
             if self.released:
                 self.handover.setdefault(inp.topic, _Handover()).live_seen.add(ident)
                 self._maybe_switch(inp.topic)
+                state = self.handover.get(inp.topic)
+                last_relay = state.last_relay_ns if state is not None else 0
+                silent = time.time_ns() - max(self.released_ns, last_relay)
+                if inp.topic in self.shadow_topics and silent > RELAY_SILENCE_NS:
+                    self._error(f'no relay for {inp.topic}; switching it to live unconfirmed')
+                    self._switch(inp.topic)
             return
         if ident in self.windows[inp.topic]:
             # e.g. a transient-local publisher re-sending what the checkpoint already holds
@@ -606,24 +619,29 @@ class NodeRuntime:
     # -- release and handover (S4) --------------------------------------------------------------
 
     def _release(self, next_segment: int) -> None:
+        """S4 on the node's side: outputs, timers and checkpoints on; buffered input applied."""
         assert self.node is not None
         if self.released:
             return
         with self.lock:
-            self.released = True
-            self.next_segment = max(self.next_segment, next_segment)
+            self._open_gates(next_segment)
             for timer in self.held_timers:
                 timer.reset()
             self.held_timers.clear()
             if self.method.checkpoints or self.method.logs:
                 tick = self._checkpoint_tick if self.method.checkpoints else self._rotate_tick
                 Node.create_timer(self.node, self.env.interval, tick, callback_group=self._group)
-            # Topics not taken from the shadow topic start with what their live reader holds.
-            live_topics = [t for t in self.inputs if t not in self.shadow_topics]
-            self._drain_pending(live_topics)
         self._status(StatusKind.RELEASED, **self.stats)
 
-    def _drain_pending(self, topics: Iterable[str]) -> None:
+    def _open_gates(self, next_segment: int) -> None:
+        """Unmute, log from ``next_segment`` on, and apply what live readers hold for the topics
+        not taken from the shadow topic (all of them after a fresh start)."""
+        self.released = True
+        self.released_ns = time.time_ns()
+        self.next_segment = max(self.next_segment, next_segment)
+        self._drain_pending([t for t in self.inputs if t not in self.shadow_topics])
+
+    def _drain_pending(self, topics: list[str]) -> None:
         backlog = [
             (info['received_timestamp'], self.inputs[topic], ident, raw, info)
             for topic in topics
@@ -641,6 +659,7 @@ class NodeRuntime:
     def _note_relayed(self, topic: str, ident: MessageId) -> None:
         state = self.handover.setdefault(topic, _Handover())
         state.relayed.append(ident)
+        state.last_relay_ns = time.time_ns()
 
     def _maybe_switch(self, topic: str) -> None:
         """Switch a topic to its live reader once that reader is seen to carry the relay.
@@ -655,6 +674,10 @@ class NodeRuntime:
         confirmed = sum(1 for ident in state.relayed if ident in state.live_seen)
         if confirmed < SWITCH_CONFIRMATIONS or state.relayed[-1] not in state.live_seen:
             return
+        self._switch(topic)
+
+    def _switch(self, topic: str) -> None:
+        """Take ``topic`` from its live reader from now on."""
         with self.lock:
             self.shadow_topics.discard(topic)
             self._drain_pending([topic])

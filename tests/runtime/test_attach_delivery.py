@@ -1,0 +1,196 @@
+"""The node-side delivery rules: what is applied, when, in which order, and never twice.
+
+These drive NodeRuntime's delivery methods directly with real CDR bytes; the subscription is a
+minimal stand-in (no DDS participant), since what is tested is the runtime's bookkeeping. The
+same paths run for real in tests/integration.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+from rclpy.qos import QoSProfile
+from rclpy.serialization import serialize_message
+from std_msgs.msg import Int64
+
+from rory_runtime import attach, protocol
+from rory_runtime.attach import CheckpointSpec, NodeRuntime, RuntimeEnv
+from rory_runtime.log import read_segment
+from rory_runtime.protocol import FLAG_RELAY, Method, Mode
+
+
+@dataclass
+class _Sub:
+    """What adopt_subscription reads from an rclpy Subscription."""
+
+    topic_name: str
+    callback: Callable[..., Any]
+    msg_type: type = Int64
+    raw: bool = False
+    qos_profile: QoSProfile = field(default_factory=lambda: QoSProfile(depth=10))
+
+    def get_publisher_count(self) -> int:
+        return 1
+
+
+def _runtime(tmp_path: Path, mode: Mode, method: Method = Method.RORY) -> NodeRuntime:
+    env = RuntimeEnv(
+        node_id='n', store=tmp_path, incarnation=2, method=method, mode=mode, interval=2.0
+    )
+    return NodeRuntime(CheckpointSpec(('x',), 'sha256:0'), env)
+
+
+def _info(n: int) -> dict[str, Any]:
+    # identity = (source timestamp, sequence): message n has both equal to n
+    return {
+        'source_timestamp': n,
+        'received_timestamp': 1_000 + n,
+        'publication_sequence_number': n,
+        'reception_sequence_number': None,
+    }
+
+
+def _cdr(n: int) -> bytes:
+    return bytes(serialize_message(Int64(data=n)))
+
+
+def _shadow(n: int, *, relay: bool = False) -> protocol.Msg:
+    return protocol.Msg(
+        incarnation=2, flags=FLAG_RELAY if relay else 0, recv_ns=1_000 + n, source_ns=n, seq=n,
+        topic='/numbers', data=_cdr(n),
+    )
+
+
+@pytest.fixture
+def applied() -> list[int]:
+    return []
+
+
+def _adopt(rt: NodeRuntime, applied: list[int]) -> _Sub:
+    sub = _Sub('/numbers', lambda msg: applied.append(msg.data))
+    rt.adopt_subscription(sub)  # type: ignore[arg-type]
+    return sub
+
+
+def _live(sub: _Sub, n: int) -> None:
+    sub.callback(_cdr(n), _info(n))
+
+
+def test_fresh_start_buffers_until_release_then_applies_in_receive_order(
+    tmp_path: Path, applied: list[int]
+) -> None:
+    rt = _runtime(tmp_path, Mode.FRESH)
+    sub = _adopt(rt, applied)
+    for n in (1, 2, 3):
+        _live(sub, n)
+    assert applied == []  # isolated until the ring is armed
+    rt._open_gates(next_segment=1)
+    _live(sub, 4)
+    assert applied == [1, 2, 3, 4]
+
+
+def test_recovery_applies_the_shadow_stream_and_skips_what_was_absorbed(
+    tmp_path: Path, applied: list[int]
+) -> None:
+    rt = _runtime(tmp_path, Mode.RECOVER)
+    sub = _adopt(rt, applied)
+    rt.windows['/numbers'].add((2, 2))  # absorbed by the restored checkpoint
+    _live(sub, 5)  # live messages wait during recovery
+    for n in (1, 2, 3, 4):
+        rt._from_shadow(_shadow(n))
+    assert applied == [1, 3, 4]
+    assert rt.stats['duplicates'] == 1
+
+
+def test_handover_switches_after_confirmations_without_loss_or_repeats(
+    tmp_path: Path, applied: list[int]
+) -> None:
+    rt = _runtime(tmp_path, Mode.RECOVER)
+    sub = _adopt(rt, applied)
+    for n in (1, 2):
+        rt._from_shadow(_shadow(n))
+    rt._open_gates(next_segment=5)
+    # live and relayed copies interleave; the live reader runs ahead of the relay
+    for n in (3, 4, 5, 6):
+        _live(sub, n)
+    assert '/numbers' in rt.shadow_topics
+    for n in (3, 4):
+        rt._from_shadow(_shadow(n, relay=True))
+    assert '/numbers' in rt.shadow_topics  # two confirmations are not enough
+    rt._from_shadow(_shadow(5, relay=True))
+    assert '/numbers' not in rt.shadow_topics  # switched: the live reader carries the stream
+    rt._from_shadow(_shadow(6, relay=True))  # late relay copy: ignored
+    _live(sub, 7)
+    assert applied == [1, 2, 3, 4, 5, 6, 7]
+
+
+def test_relayed_messages_are_logged_replayed_ones_are_not(
+    tmp_path: Path, applied: list[int]
+) -> None:
+    rt = _runtime(tmp_path, Mode.RECOVER)
+    _adopt(rt, applied)
+    rt._from_shadow(_shadow(1))  # from a sealed segment: already in the log
+    rt._open_gates(next_segment=7)
+    rt._from_shadow(_shadow(2, relay=True))  # recorded after RELEASE: only the node logs it
+    rt.close()
+    logged = list(read_segment(rt.segments.path(7)))
+    assert [(e.source_ns, e.seq) for e in logged] == [(2, 2)]
+    assert rt.segments.numbers() == [7]
+
+
+def test_silent_relay_switches_the_topic_to_live_instead_of_stalling(
+    tmp_path: Path, applied: list[int], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(attach, 'RELAY_SILENCE_NS', 0)
+    rt = _runtime(tmp_path, Mode.RECOVER)
+    sub = _adopt(rt, applied)
+    rt._from_shadow(_shadow(1))
+    rt._open_gates(next_segment=3)
+    _live(sub, 1)  # already applied from the shadow topic: skipped when drained
+    _live(sub, 2)
+    assert '/numbers' not in rt.shadow_topics
+    assert applied == [1, 2]
+    assert any('no relay for /numbers' in e for e in rt.reported_errors)
+
+
+def test_live_duplicate_of_an_absorbed_message_is_skipped_after_release(
+    tmp_path: Path, applied: list[int]
+) -> None:
+    # e.g. a transient-local publisher re-sending its last sample to the new reader
+    rt = _runtime(tmp_path, Mode.RECOVER, Method.CHECKPOINT)
+    sub = _adopt(rt, applied)
+    rt.windows['/numbers'].add((9, 9))
+    rt._open_gates(next_segment=1)
+    _live(sub, 9)
+    _live(sub, 10)
+    assert applied == [10]
+
+
+def test_publishers_are_muted_until_release(tmp_path: Path) -> None:
+    rt = _runtime(tmp_path, Mode.RECOVER)
+    sent: list[Any] = []
+
+    class _Pub:
+        def publish(self, msg: Any) -> None:
+            sent.append(msg)
+
+    pub = _Pub()
+    rt.adopt_publisher(pub)  # type: ignore[arg-type]
+    pub.publish('during replay')
+    rt._open_gates(next_segment=1)
+    pub.publish('after release')
+    assert sent == ['after release']
+    assert rt.stats['muted'] == 1
+
+
+def test_a_second_subscription_to_the_same_topic_is_refused_clearly(
+    tmp_path: Path, applied: list[int]
+) -> None:
+    rt = _runtime(tmp_path, Mode.FRESH)
+    _adopt(rt, applied)
+    with pytest.raises(attach.RoryError, match='subscribes twice to /numbers'):
+        _adopt(rt, applied)

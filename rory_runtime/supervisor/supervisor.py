@@ -209,8 +209,9 @@ class ManagedNode:
             return
         ran_for = 0.0 if self.running_since is None else ev.at - self.running_since
         self.running_since = None
+        was_recovering = self.sm.recovering
         self.sm.change_state(NodeState.CRASHED, how)
-        self._crashed(ev)
+        self._crashed(ev, was_recovering)
         delay = self.policy.on_crash(ran_for)
         if delay is None:
             # Giving up leaves the robot in the safe state: nothing will drive it back out.
@@ -219,8 +220,11 @@ class ManagedNode:
                 f'{self.policy.consecutive - 1} restarts in a row failed; giving up',
             )
             self.sup.events_log.write('fatal', self.id, crashes=self.policy.consecutive)
-            if self.recovery is not None and self.recovery.streamer is not None:
-                self.recovery.streamer.stop()
+            if self.recovery is not None:
+                # Stop recording for a node that will not come back (R stays on disk).
+                self.recovery.finish()
+                if self.ring is not None:
+                    self.ring.deactivate()
             return
         if delay > 0:
             self.restart_at = time.monotonic() + delay
@@ -228,10 +232,11 @@ class ManagedNode:
         else:
             self._restart()
 
-    def _crashed(self, ev: ChildExited) -> None:
+    def _crashed(self, ev: ChildExited, was_recovering: bool) -> None:
         rec = self.recovery
-        if rec is not None and rec.rlog is not None and not rec.rlog.sealed:
-            # Died during its own recovery: same recovery goes on, R keeps recording.
+        if rec is not None and was_recovering:
+            # Died before its release: the same recovery goes on (R keeps recording), and its
+            # time still counts from the first crash.
             rec.again(ev.at)
             return
         if rec is not None:

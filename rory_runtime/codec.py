@@ -2,8 +2,8 @@
 
 A checkpoint holds the values of a node's key variables. It is data, never code: decoding
 builds values only from the closed set of types below and never calls anything named by the
-bytes. The one import decoding may trigger is that of a ROS 2 message package, and only for
-a type name that matches ``<package>/msg/<Type>`` exactly.
+bytes. Decoding imports nothing but a ROS 2 message package, and only for a type name that
+matches ``<package>/msg/<Type>`` exactly, and rclpy itself for ``Time`` and ``Duration``.
 
 Values round-trip exactly, type and value:
 
@@ -11,38 +11,71 @@ Values round-trip exactly, type and value:
   ``list``, ``dict`` (any supported hashable keys, insertion order kept);
 - as msgpack extension types, whose payload is itself msgpack unless noted:
 
-  ====  ================  ==========================================================
-  code  Python type       payload
-  ====  ================  ==========================================================
-  1     ``tuple``         array of the items
-  2     ``set``           array of the members
-  3     ``frozenset``     array of the members
-  4     ``bytearray``     the raw bytes (not msgpack)
-  5     ``int`` > 64 bit  two's complement, big endian, minimal length (not msgpack)
-  6     numpy ndarray     ``[dtype.str, shape, C-order data bytes]``
-  7     numpy scalar      ``[dtype.str, data bytes]``
-  8     ROS 2 message     ``[type name, CDR bytes]`` (``rclpy.serialization``)
-  ====  ================  ==========================================================
+  ====  ===========================  ==========================================================
+  code  Python type                  payload
+  ====  ===========================  ==========================================================
+  1     ``tuple``                    array of the items
+  2     ``set``                      array of the members
+  3     ``frozenset``                array of the members
+  4     ``bytearray``                the raw bytes (not msgpack)
+  5     ``int`` > 64 bit             two's complement, big endian, minimal length (not msgpack)
+  6     numpy ndarray                ``[dtype.str, shape, C-order data bytes]``
+  7     numpy scalar                 ``[dtype.str, data bytes]``
+  8     ROS 2 message                ``[type name, CDR bytes]`` (``rclpy.serialization``)
+  9     ``enum.Enum`` member         ``[module, qualname, member name]``; for a ``Flag``
+                                     combination, which has no name, the int value instead
+  10    dataclass instance           ``[module, qualname, {field name: value}]``, all of
+                                     ``dataclasses.fields()``, ``init=False`` ones too
+  11    ``rclpy.time.Time``          ``[nanoseconds, clock type as int]``
+  12    ``rclpy.duration.Duration``  nanoseconds
+  13    ``collections.deque``        ``[maxlen or nil, array of the items]``
+  14    ``collections.OrderedDict``  map of the items, in order
+  ====  ===========================  ==========================================================
 
-Anything else is refused with a :class:`CodecError` naming where the value sits, e.g.
-``variable 'cfg'['gains'][1]: cannot checkpoint a value of type _thread.lock``. In such
-paths ``[i]`` is a list or tuple index, ``['k']`` a dict value, ``.keys()[i]`` the i-th key
-of a dict and ``{i}`` the i-th member of a set in iteration order. Subclasses of supported
-types (``IntEnum``, ``OrderedDict``, ``defaultdict``, ``np.matrix``...) are refused too,
-because they would come back as their base type.
+Enum and dataclass classes are named by module and qualname, so they may be nested in a
+class but not defined inside a function (refused when encoding). Decoding finds the class in
+``sys.modules`` by plain dictionary look-ups, **never importing** (a node's modules are
+loaded by the time its checkpoint is restored), and checks it is an Enum class or a
+dataclass. An Enum member comes back as the very same member object (``is``). A dataclass
+comes back **without running any of its code**: ``object.__new__(cls)``, then
+``object.__setattr__`` for each field, which works for frozen and slotted classes too;
+neither ``__init__`` nor ``__post_init__`` runs, because a checkpoint is data and restoring
+it must not depend on, or trigger, what the class's code does. So that this loses nothing,
+encoding refuses a dataclass instance carrying attributes that are not fields (except
+``functools.cached_property`` caches, which are recomputed), a field that is not set, a
+field that is a descriptor, and a dataclass deriving from a built-in type such as ``dict``.
+Decoding refuses a class whose fields are no longer those stored (the code changed).
 
-Decoding hostile bytes raises :class:`CodecError` and nothing else. One quirk: msgpack
-itself decodes its reserved timestamp extension (-1) to ``msgpack.Timestamp`` before any hook
-sees it; the codec never writes that extension, and checkpoint files carry a checksum.
+Anything else is refused with a :class:`CodecError` naming where the value sits, its type
+and, for what is not state at all, why, e.g.
+``variable 'cfg'['gains'][1]: cannot checkpoint a value of type _thread.lock (a lock or
+other thread synchronization object, not state)``. In such paths ``[i]`` is a list, tuple or
+deque index, ``['k']`` a dict value, ``.keys()[i]`` the i-th key of a dict, ``{i}`` the i-th
+member of a set in iteration order and ``.f`` the field ``f`` of a dataclass. Subclasses of
+supported types (``defaultdict``, ``Counter``, a namedtuple, ``np.matrix``...) are refused
+too, because they would come back as their base type.
+
+Decoding hostile bytes raises :class:`CodecError` and nothing else; the message names the
+variable and, inside dataclasses, the field (``variable 'ekf'.mode: cannot decode: ...``).
+One quirk: msgpack itself decodes its reserved timestamp extension (-1) to
+``msgpack.Timestamp`` before any hook sees it; the codec never writes that extension, and
+checkpoint files carry a checksum.
 """
 
 from __future__ import annotations
 
+import collections
+import dataclasses
+import enum
+import functools
 import math
 import re
+import sys
 import threading
-from collections.abc import Callable, Mapping
-from typing import Any, Final
+import types
+import weakref
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any, Final, Generic
 
 import msgpack
 import numpy as np
@@ -58,6 +91,12 @@ EXT_BIGINT: Final = 5
 EXT_NDARRAY: Final = 6
 EXT_NPSCALAR: Final = 7
 EXT_ROSMSG: Final = 8
+EXT_ENUM: Final = 9
+EXT_DATACLASS: Final = 10
+EXT_TIME: Final = 11
+EXT_DURATION: Final = 12
+EXT_DEQUE: Final = 13
+EXT_ORDEREDDICT: Final = 14
 
 ROS_TYPE_RE: Final = re.compile(r'[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*')
 """Accepted ROS 2 message type names; checked before anything is imported."""
@@ -77,7 +116,16 @@ _UNICODE_ERRORS: Final = 'surrogatepass'
 
 
 class _Malformed(Exception):
-    """Bytes that do not decode; turned into CodecError naming the variable at the boundary."""
+    """Bytes that do not decode; turned into CodecError naming the variable at the boundary.
+
+    Args:
+        reason: What is wrong.
+        path: Where inside the variable, as far as known (``.field`` inside dataclasses).
+    """
+
+    def __init__(self, reason: str, path: str = '') -> None:
+        super().__init__(reason)
+        self.path = path
 
 
 # --------------------------------------------------------------------------- encoding
@@ -184,6 +232,7 @@ _AT_INDEX: Final = '[{}]'
 _AT_VALUE: Final = '[{!r}]'
 _AT_KEY: Final = '.keys()[{}]'
 _AT_MEMBER: Final = '{{{}}}'
+_AT_FIELD: Final = '.{}'
 
 
 def _path_str(path: _Path) -> str:
@@ -221,13 +270,35 @@ def _lower(value: object, path: _Path) -> object:
         return _lower_ndarray(value, path)
     if isinstance(value, np.generic):
         return _lower_npscalar(value, path)
+    if type(value) is collections.deque:
+        return _ext(EXT_DEQUE, _pack([value.maxlen, _lower_items(value, path)]))
+    if type(value) is collections.OrderedDict:
+        return _ext(EXT_ORDEREDDICT, _pack(_lower_dict(value, path)))
     type_name = ros_type_name(kind)
     if type_name is not None:
         return _lower_rosmsg(value, type_name, path)
-    raise _refuse(path, f'a value of type {_type_label(kind)}')
+    if issubclass(kind, enum.Enum):
+        assert isinstance(value, enum.Enum)
+        return _lower_enum(value, kind, path)
+    if dataclasses.is_dataclass(kind):
+        return _lower_dataclass(value, kind, path)
+    if kind is _loaded_class('rclpy.time', 'Time'):
+        ns, clock = value.nanoseconds, int(value.clock_type)  # type: ignore[attr-defined]
+        return _ext(EXT_TIME, _pack([ns, clock]))
+    if kind is _loaded_class('rclpy.duration', 'Duration'):
+        return _ext(EXT_DURATION, _pack(value.nanoseconds))  # type: ignore[attr-defined]
+    hint = _not_state_hint(value, kind)
+    label = _type_label(kind)
+    raise _refuse(path, f'a value of type {label}' + (f' ({hint})' if hint else ''))
 
 
-def _lower_items(items: list[object] | tuple[object, ...], path: _Path) -> list[object]:
+def _loaded_class(module: str, name: str) -> object:
+    """module.name if that module is loaded, else None; a value's class implies its module."""
+    loaded = sys.modules.get(module)
+    return None if loaded is None else vars(loaded).get(name)
+
+
+def _lower_items(items: Iterable[object], path: _Path) -> list[object]:
     out = list(items)
     for index, item in enumerate(out):
         if type(item) not in _NATIVE:
@@ -283,6 +354,41 @@ def _lower_rosmsg(message: object, type_name: str, path: _Path) -> msgpack.ExtTy
     return _ext(EXT_ROSMSG, _pack([type_name, cdr]))
 
 
+def _lower_enum(member: enum.Enum, kind: type[enum.Enum], path: _Path) -> msgpack.ExtType:
+    reason = _unnamed_class_reason(kind)
+    if reason is not None:
+        raise _refuse(path, f'a value of type {_type_label(kind)} ({reason})')
+    key: object = member._name_
+    if key is None or kind._member_map_.get(member._name_) is not member:
+        # A Flag combination (or an empty Flag) is no member of its own: stored by value.
+        key = member._value_
+        if not isinstance(member, enum.Flag) or type(key) is not int:
+            msg = f'a value of type {_type_label(kind)} (an Enum member without a name)'
+            raise _refuse(path, msg)
+    return _ext(EXT_ENUM, _pack([kind.__module__, kind.__qualname__, key]))
+
+
+def _lower_dataclass(value: object, kind: type, path: _Path) -> msgpack.ExtType:
+    layout = _dataclass_layout(kind)
+    reason = layout.refusal or _unnamed_class_reason(kind)
+    if reason is None:
+        # Attributes that are not fields would be lost: decoding runs no __post_init__.
+        attributes = getattr(value, '__dict__', None)
+        if attributes is not None and not layout.attributes.issuperset(attributes):
+            lost = ', '.join(sorted(str(a) for a in attributes if a not in layout.attributes))
+            reason = f'its attributes {lost} are not dataclass fields and would be lost'
+    if reason is not None:
+        raise _refuse(path, f'a value of type {_type_label(kind)} ({reason})')
+    fields: dict[str, object] = {}
+    for name in layout.fields:
+        try:
+            item = getattr(value, name)
+        except AttributeError:
+            raise _refuse((path, _AT_FIELD, name), 'a dataclass field that is not set') from None
+        fields[name] = item if type(item) in _NATIVE else _lower(item, (path, _AT_FIELD, name))
+    return _ext(EXT_DATACLASS, _pack([kind.__module__, kind.__qualname__, fields]))
+
+
 def ros_type_name(cls: type) -> str | None:
     """Return the ROS 2 type name of a generated message class, or None if it is not one."""
     return message_type_name(cls)
@@ -291,6 +397,196 @@ def ros_type_name(cls: type) -> str | None:
 def _type_label(kind: type) -> str:
     module = kind.__module__
     return kind.__qualname__ if module == 'builtins' else f'{module}.{kind.__qualname__}'
+
+
+_ROS_ENTITY: Final = 'a ROS entity, not state'
+_SYNC: Final = 'a lock or other thread synchronization object, not state'
+
+# What a node holds that is not state, by (module, qualname) of a class in the value's MRO:
+# no import needed, since a value of one of these classes means its module is loaded.
+_NOT_STATE: Final[dict[tuple[str, str], str]] = {
+    **dict.fromkeys(
+        [
+            ('rclpy.node', 'Node'),
+            ('rclpy.publisher', 'Publisher'),
+            ('rclpy.subscription', 'Subscription'),
+            ('rclpy.timer', 'Timer'),
+            ('rclpy.timer', 'Rate'),
+            ('rclpy.client', 'Client'),
+            ('rclpy.service', 'Service'),
+            ('rclpy.waitable', 'Waitable'),  # action clients and servers among others
+            ('rclpy.guard_condition', 'GuardCondition'),
+            ('rclpy.clock', 'Clock'),
+            ('rclpy.time_source', 'TimeSource'),
+            ('rclpy.executors', 'Executor'),
+            ('rclpy.callback_groups', 'CallbackGroup'),
+            ('rclpy.context', 'Context'),
+            ('rclpy.task', 'Future'),
+            ('rclpy.impl.rcutils_logger', 'RcutilsLogger'),
+        ],
+        _ROS_ENTITY,
+    ),
+    **dict.fromkeys(
+        [
+            ('_thread', 'lock'),
+            ('_thread', 'RLock'),
+            ('threading', '_RLock'),
+            ('threading', 'Condition'),
+            ('threading', 'Semaphore'),
+            ('threading', 'Event'),
+            ('threading', 'Barrier'),
+        ],
+        _SYNC,
+    ),
+    ('threading', 'Thread'): 'a thread, not state',
+    ('_io', '_IOBase'): 'an open file or stream, not state',
+    ('_socket', 'socket'): 'a socket, not state',
+    ('collections', 'defaultdict'): 'its default_factory is code; use a plain dict',
+}
+
+_CODE_TYPES: Final = (
+    types.FunctionType,
+    types.BuiltinFunctionType,
+    types.MethodType,
+    types.MethodWrapperType,
+    types.WrapperDescriptorType,
+    types.MethodDescriptorType,
+    functools.partial,
+)
+_SUPPORTED_BASES: Final = (
+    int, float, str, bytes, bytearray, list, tuple, dict, set, frozenset, np.ndarray,
+)  # fmt: skip
+_HEAPTYPE: Final = 1 << 9  # Py_TPFLAGS_HEAPTYPE: a class made by a class statement
+
+
+def _not_state_hint(value: object, kind: type) -> str | None:
+    """Why an unsupported value is not what a checkpoint can hold, in plain words."""
+    if isinstance(value, type):
+        return f'the class {_type_label(value)} itself: a class is code, not state'
+    for base in kind.__mro__:
+        hint = _NOT_STATE.get((base.__module__, base.__qualname__))
+        if hint is not None:
+            return hint
+    if isinstance(value, types.ModuleType):
+        return 'a module: code, not state'
+    if isinstance(value, _CODE_TYPES):
+        return 'a function or method: code, not state'
+    if isinstance(value, types.GeneratorType | types.CoroutineType | types.AsyncGeneratorType):
+        return 'a generator or coroutine, not state'
+    if hasattr(kind, '__next__'):
+        return 'an iterator, not state'
+    if hasattr(type(kind), '_TYPE_SUPPORT'):
+        return 'a ROS service or action type; only messages (pkg/msg/Type) are supported'
+    for base in _SUPPORTED_BASES:
+        if isinstance(value, base):
+            plain = _type_label(base)
+            return f'a subclass of {plain}, which would come back as a plain {plain}'
+    if kind.__flags__ & _HEAPTYPE and hasattr(value, '__dict__'):
+        return 'a plain object; make its class a dataclass to checkpoint it'
+    return None
+
+
+# --------------------------------------------------------------------------- classes by name
+
+
+@functools.lru_cache(maxsize=4096)
+def _dotted_parts(name: str) -> tuple[str, ...] | None:
+    """The parts of a dotted name like ``Outer.Inner``, or None if it is not one."""
+    parts = tuple(name.split('.'))
+    return parts if all(part.isidentifier() for part in parts) else None
+
+
+def _find_class(module: object, qualname: object, what: str) -> type:
+    """The class ``module.qualname`` among the loaded modules; never imports anything.
+
+    Plain look-ups in a module's or class's own ``__dict__``: no module ``__getattr__``,
+    descriptor or metaclass hook runs.
+
+    Raises:
+        _Malformed: A name is malformed, the module is not loaded or holds no such class.
+
+    """
+    parts = _dotted_parts(qualname) if type(qualname) is str else None
+    if parts is None or type(module) is not str or _dotted_parts(module) is None:
+        msg = f'bad {what} class name {module!r}, {qualname!r}'
+        raise _Malformed(msg)
+    found: object = sys.modules.get(module)
+    if not issubclass(type(found), types.ModuleType):
+        msg = f'{what} class {module}.{qualname}: module {module!r} is not loaded'
+        raise _Malformed(msg)
+    for part in parts:
+        found = vars(found).get(part)
+        if not issubclass(type(found), type):
+            msg = f'{what} class {module}.{qualname} does not exist in module {module!r}'
+            raise _Malformed(msg)
+    assert isinstance(found, type)
+    return found
+
+
+def _unnamed_class_reason(kind: type) -> str | None:
+    """Why decoding could not find kind again by module and qualname; None if it can."""
+    if '<locals>' in kind.__qualname__:
+        return (
+            'its class is defined inside a function; a checkpoint names a class by module'
+            ' and qualname, so define it at module level or nested in a class'
+        )
+    try:
+        found: type | None = _find_class(kind.__module__, kind.__qualname__, 'the')
+    except _Malformed:
+        found = None
+    if found is not kind:
+        return f'its class is not the one named {kind.__module__}.{kind.__qualname__}'
+    return None
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class _Layout:
+    """What the codec needs to know about a dataclass, computed once per class."""
+
+    fields: tuple[str, ...]
+    """Names of all fields, in definition order."""
+    field_set: frozenset[str]
+    attributes: frozenset[str]
+    """Instance attributes that may be present: the fields, and cached_property caches."""
+    refusal: str | None
+    """Why instances cannot round-trip, or None."""
+
+
+_PLAIN_BASES: Final = frozenset({object, Generic})
+_layouts: weakref.WeakKeyDictionary[type, _Layout] = weakref.WeakKeyDictionary()
+
+
+def _dataclass_layout(cls: type) -> _Layout:
+    layout = _layouts.get(cls)
+    if layout is None:
+        layout = _layouts[cls] = _make_layout(cls)
+    return layout
+
+
+def _make_layout(cls: type) -> _Layout:
+    fields = tuple(field.name for field in dataclasses.fields(cls))
+    attributes: dict[str, object] = {}
+    for base in reversed(cls.__mro__):
+        attributes.update(vars(base))
+    cached = {k for k, v in attributes.items() if isinstance(v, functools.cached_property)}
+    refusal: str | None = None
+    for base in cls.__mro__:
+        if base not in _PLAIN_BASES and not base.__flags__ & _HEAPTYPE:
+            # object.__new__ cannot make it, and fields alone would not hold its contents.
+            refusal = f'a dataclass deriving from {_type_label(base)}'
+            break
+    for name in fields:
+        attribute = attributes.get(name)
+        if refusal is None and _is_data_descriptor(attribute):
+            refusal = f'its field {name!r} is a descriptor: setting it would run code'
+    return _Layout(fields, frozenset(fields), frozenset(fields) | cached, refusal)
+
+
+def _is_data_descriptor(attribute: object) -> bool:
+    # Slots are descriptors too, but plain storage.
+    kind = type(attribute)
+    is_descriptor = hasattr(kind, '__set__') or hasattr(kind, '__delete__')
+    return is_descriptor and kind is not types.MemberDescriptorType
 
 
 # --------------------------------------------------------------------------- decoding
@@ -377,18 +673,23 @@ def _expect_end(unpacker: msgpack.Unpacker, size: int, subject: str) -> None:
 
 
 def _decode_error(subject: str, err: Exception) -> CodecError:
-    reason: str
+    return CodecError(f'{subject}{_path_of(err)}: cannot decode: {_reason(err)}')
+
+
+def _path_of(err: Exception) -> str:
+    return err.path if isinstance(err, _Malformed) else ''
+
+
+def _reason(err: Exception) -> str:
     if isinstance(err, _Malformed):
-        reason = str(err)
-    elif isinstance(err, msgpack.OutOfData):
-        reason = 'truncated data'
-    elif isinstance(err, msgpack.FormatError):
-        reason = 'invalid msgpack format byte'
-    elif isinstance(err, msgpack.StackError | RecursionError):
-        reason = 'nested too deeply'
-    else:
-        reason = f'{type(err).__name__}: {err}'
-    return CodecError(f'{subject}: cannot decode: {reason}')
+        return str(err)
+    if isinstance(err, msgpack.OutOfData):
+        return 'truncated data'
+    if isinstance(err, msgpack.FormatError):
+        return 'invalid msgpack format byte'
+    if isinstance(err, msgpack.StackError | RecursionError):
+        return 'nested too deeply'
+    return f'{type(err).__name__}: {err}'
 
 
 def _ext_hook(code: int, data: bytes) -> object:
@@ -521,6 +822,144 @@ def _message_class(type_name: str) -> type:
         raise _Malformed(msg) from None
 
 
+def _decode_enum(data: bytes) -> object:
+    module, qualname, key = _unpack_list(data, 'Enum member', 3)
+    cls = _find_class(module, qualname, 'Enum')
+    full = f'{module}.{qualname}'
+    if not issubclass(cls, enum.Enum) or not cls._member_map_:
+        msg = f'{full} is not an Enum class with members'
+        raise _Malformed(msg)
+    if type(key) is str:
+        member = cls._member_map_.get(key)
+        if member is None:
+            msg = f'Enum {full} has no member {key!r}'
+            raise _Malformed(msg)
+        return member
+    if type(key) is int and issubclass(cls, enum.Flag):
+        return _flag_combination(cls, key, full)
+    msg = f'malformed member of Enum {full}: {key!r}'
+    raise _Malformed(msg)
+
+
+# The enum module's own way to make a Flag combination, which Flag(value) calls unless the
+# class overrides _missing_; used directly so that no code of the class runs.
+_FLAG_MISSING: Final[Callable[[type[enum.Flag], int], object]] = vars(enum.Flag)[
+    '_missing_'
+].__func__
+
+
+def _flag_combination(cls: type[enum.Flag], value: int, full: str) -> enum.Flag:
+    member = cls._value2member_map_.get(value)
+    if member is None:
+        try:
+            member = _FLAG_MISSING(cls, value)  # type: ignore[assignment]
+        except ValueError:
+            member = None
+    # The encoder writes the value of an existing member, never one the boundary changes.
+    if not isinstance(member, cls) or member._value_ != value:
+        msg = f'Flag {full} has no value {value}'
+        raise _Malformed(msg)
+    return member
+
+
+def _decode_dataclass(data: bytes) -> object:
+    unpacker = _unpacker(data)
+    if unpacker.read_array_header() != 3:
+        msg = 'malformed dataclass payload'
+        raise _Malformed(msg)
+    module, qualname = unpacker.unpack(), unpacker.unpack()
+    cls = _find_class(module, qualname, 'dataclass')
+    full = f'{module}.{qualname}'
+    if not dataclasses.is_dataclass(cls):
+        msg = f'{full} is not a dataclass'
+        raise _Malformed(msg)
+    layout = _dataclass_layout(cls)
+    if layout.refusal is not None:
+        msg = f'dataclass {full} cannot be restored: {layout.refusal}'
+        raise _Malformed(msg)
+    values: dict[str, object] = {}
+    for _ in range(unpacker.read_map_header()):
+        name = unpacker.unpack()
+        if type(name) is not str or not name.isidentifier() or name in values:
+            msg = f'bad field name {name!r} for dataclass {full}'
+            raise _Malformed(msg)
+        try:
+            values[name] = unpacker.unpack()
+        except Exception as err:
+            raise _Malformed(_reason(err), f'.{name}{_path_of(err)}') from None
+    if unpacker.tell() != len(data):
+        msg = f'malformed payload for dataclass {full}'
+        raise _Malformed(msg)
+    if values.keys() != layout.field_set:
+        raise _Malformed(_changed_fields(full, layout, values))
+    # No __init__ or __post_init__: a checkpoint is data, and restoring it runs no code of
+    # the class; object.__setattr__ also fills frozen and slotted dataclasses.
+    instance = object.__new__(cls)
+    for name in layout.fields:
+        object.__setattr__(instance, name, values[name])
+    return instance
+
+
+def _changed_fields(full: str, layout: _Layout, values: Mapping[str, object]) -> str:
+    new = [name for name in layout.fields if name not in values]
+    gone = [name for name in values if name not in layout.field_set]
+    differences = []
+    if new:
+        differences.append(f'not in the checkpoint: {", ".join(new)}')
+    if gone:
+        differences.append(f'no longer in the class: {", ".join(gone)}')
+    return f'dataclass {full} has changed since the checkpoint; fields {"; ".join(differences)}'
+
+
+_NS_RANGE: Final = range(-(2**63), 2**63)
+
+
+def _decode_time(data: bytes) -> object:
+    ns, clock = _unpack_list(data, 'rclpy Time', 2)
+    if type(ns) is not int or not 0 <= ns < 2**63 or type(clock) is not int:
+        msg = 'malformed rclpy Time payload'
+        raise _Malformed(msg)
+    from rclpy.clock_type import ClockType  # lazily: importing rclpy costs
+    from rclpy.time import Time
+
+    try:
+        clock_type = ClockType(clock)
+    except ValueError:
+        msg = f'unknown clock type {clock} of rclpy Time'
+        raise _Malformed(msg) from None
+    return Time(nanoseconds=ns, clock_type=clock_type)
+
+
+def _decode_duration(data: bytes) -> object:
+    ns = _unpack(data)
+    if type(ns) is not int or ns not in _NS_RANGE:
+        msg = 'malformed rclpy Duration payload'
+        raise _Malformed(msg)
+    from rclpy.duration import Duration  # lazily: importing rclpy costs
+
+    return Duration(nanoseconds=ns)
+
+
+def _decode_deque(data: bytes) -> object:
+    maxlen, items = _unpack_list(data, 'deque', 2)
+    if (
+        type(items) is not list
+        or (maxlen is not None and type(maxlen) is not int)
+        or (type(maxlen) is int and not len(items) <= maxlen <= sys.maxsize)
+    ):
+        msg = 'malformed deque payload'
+        raise _Malformed(msg)
+    return collections.deque(items, maxlen)
+
+
+def _decode_ordereddict(data: bytes) -> object:
+    items = _unpack(data)
+    if type(items) is not dict:
+        msg = 'malformed OrderedDict payload'
+        raise _Malformed(msg)
+    return collections.OrderedDict(items)
+
+
 _EXT_DECODERS: Final[dict[int, Callable[[bytes], object]]] = {
     EXT_TUPLE: _decode_tuple,
     EXT_SET: _decode_set,
@@ -530,4 +969,10 @@ _EXT_DECODERS: Final[dict[int, Callable[[bytes], object]]] = {
     EXT_NDARRAY: _decode_ndarray,
     EXT_NPSCALAR: _decode_npscalar,
     EXT_ROSMSG: _decode_rosmsg,
+    EXT_ENUM: _decode_enum,
+    EXT_DATACLASS: _decode_dataclass,
+    EXT_TIME: _decode_time,
+    EXT_DURATION: _decode_duration,
+    EXT_DEQUE: _decode_deque,
+    EXT_ORDEREDDICT: _decode_ordereddict,
 }

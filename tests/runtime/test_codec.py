@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import enum
 import io
 import math
 import socket
@@ -244,7 +243,8 @@ def test_numpy_float64_is_not_confused_with_float() -> None:
 def test_ros_message_roundtrip(message: object) -> None:
     decoded = roundtrip(message)
     assert type(decoded) is type(message)
-    assert serialize_message(decoded) == serialize_message(message)
+    # Field by field: CDR bytes are no fit, their alignment padding is uninitialized memory.
+    assert decoded == message
 
 
 def test_list_of_ros_messages() -> None:
@@ -383,10 +383,6 @@ class Custom:
     pass
 
 
-class Colour(enum.IntEnum):
-    RED = 1
-
-
 def function() -> None:
     pass
 
@@ -407,10 +403,7 @@ def refusal(value: object, name: str = 'value') -> str:
         (threading.Event(), 'threading.Event'),
         (io.BytesIO(), '_io.BytesIO'),
         (Custom(), 'Custom'),
-        (Colour.RED, 'Colour'),
-        (collections.OrderedDict(), 'collections.OrderedDict'),
         (collections.defaultdict(list), 'collections.defaultdict'),
-        (collections.deque(), 'collections.deque'),
         (iter([]), 'list_iterator'),
         ((x for x in ()), 'generator'),
         (sys, 'module'),

@@ -13,7 +13,7 @@ from typing import TypeVar
 
 from .protocol import ENV_NODE
 
-__all__ = ['checkpointed']
+__all__ = ['checkpoint_module', 'checkpointed']
 
 C = TypeVar('C', bound=type)
 

@@ -72,11 +72,14 @@ from .protocol import (
     Mode,
     StatusKind,
 )
+from .state import CheckpointSpec, read_state, write_state
 from .store import Checkpoint, CheckpointStore
 
 _logger = logging.getLogger('rory.runtime')
 
 N = TypeVar('N', bound=type[Node])
+
+DEFAULT_INTERVAL = 2.0
 
 SWITCH_CONFIRMATIONS = 3
 """Relayed messages that must also arrive live before a topic switches to its live reader."""
@@ -88,14 +91,6 @@ duplicates; only a publisher matched late could lose a message, which is logged.
 
 
 @dataclass(frozen=True)
-class CheckpointSpec:
-    """What ``rory-instrument`` wrote into the decorator."""
-
-    vars: tuple[str, ...]
-    manifest: str
-
-
-@dataclass(frozen=True)
 class RuntimeEnv:
     """How the supervisor configured this process."""
 
@@ -104,7 +99,7 @@ class RuntimeEnv:
     incarnation: int
     method: Method
     mode: Mode
-    interval: float
+    interval: float | None  # None: the supervisor config left it to the node's keyvars
 
     @classmethod
     def from_environ(cls, environ: dict[str, str] | None = None) -> RuntimeEnv | None:
@@ -124,33 +119,65 @@ class RuntimeEnv:
                 incarnation=int(env[ENV_INCARNATION]),
                 method=Method(env[ENV_METHOD]),
                 mode=Mode(env[ENV_MODE]),
-                interval=float(env.get(ENV_INTERVAL, '2.0')),
+                interval=float(env[ENV_INTERVAL]) if env.get(ENV_INTERVAL) else None,
             )
         except (KeyError, ValueError) as err:
             raise RoryError(f'{ENV_NODE} is set but the environment is bad: {err}') from None
 
 
-def checkpointed(*, vars: tuple[str, ...], manifest: str) -> Callable[[N], N]:
+def checkpointed(
+    *,
+    vars: tuple[str, ...],
+    manifest: str,
+    module_vars: tuple[str, ...] = (),
+    checkpoint_interval: float | None = None,
+    replay: str | None = None,
+) -> Callable[[N], N]:
     """Class decorator that ``rory-instrument`` puts on a node class.
 
     Args:
-        vars: Names of the ``self.<name>`` attributes that make up the node's state.
+        vars: Paths of the ``self.<path>`` attributes that make up the node's state.
         manifest: Hash of the instrumented code version; a checkpoint written under another
             manifest is refused.
+        module_vars: Paths of module globals that are state too.
+        checkpoint_interval: Seconds between checkpoints, unless the supervisor sets it.
+        replay: 'paced' or 'fast', unless the supervisor sets it.
 
     Returns:
         The decorator. Unsupervised, it returns the class unchanged.
     """
-    spec = CheckpointSpec(tuple(vars), manifest)
 
     def decorate(cls: N) -> N:
         env = RuntimeEnv.from_environ()
         if env is None:
             return cls
+        spec = CheckpointSpec(
+            tuple(vars), manifest, tuple(module_vars), cls.__module__, checkpoint_interval, replay
+        )
         _install(cls, spec, env)
         return cls
 
     return decorate
+
+
+def checkpoint_module(
+    module: str,
+    *,
+    vars: tuple[str, ...],
+    manifest: str,
+    checkpoint_interval: float | None = None,
+    replay: str | None = None,
+) -> None:
+    """For nodes written as functions: the module's globals ``vars`` are the node's state.
+
+    The runtime attaches to the first rclpy Node this process creates after the call (what
+    ``rclpy.create_node`` returns in such a module). Unsupervised, it does nothing.
+    """
+    env = RuntimeEnv.from_environ()
+    if env is None:
+        return
+    spec = CheckpointSpec((), manifest, tuple(vars), module, checkpoint_interval, replay)
+    _watch_for_node(spec, env)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -179,27 +206,70 @@ def _install(cls: type[Node], spec: CheckpointSpec, env: RuntimeEnv) -> None:
 
     cls.__init__ = __init__  # type: ignore[method-assign]
 
-    factories: tuple[tuple[str, Callable[[NodeRuntime, Any], None]], ...] = (
+    for name, adopt in _factories():
+        setattr(cls, name, _wrap_factory(getattr(cls, name), adopt, env))
+
+
+def _watch_for_node(spec: CheckpointSpec, env: RuntimeEnv) -> None:
+    """Attach a runtime to the next Node constructed in this process."""
+    original_init = Node.__init__
+    if getattr(original_init, '__rory_watch__', None) is not None:
+        return  # one function-style node per process
+
+    @functools.wraps(original_init)
+    def __init__(self: Node, *args: Any, **kwargs: Any) -> None:
+        original_init(self, *args, **kwargs)
+        if type(self).__dict__.get('__rory_installed__') or '_rory_runtime' in self.__dict__:
+            return  # an instrumented class has its own runtime
+        Node.__init__ = original_init  # type: ignore[method-assign]
+        runtime = NodeRuntime(spec, env)
+        self.__dict__['_rory_runtime'] = runtime
+        for name, adopt in _factories():
+            bound = getattr(self, name)
+            setattr(self, name, _wrap_factory(bound, adopt, env, bound_method=True))
+        runtime.on_constructed(self)
+
+    __init__.__rory_watch__ = spec  # type: ignore[attr-defined]
+    Node.__init__ = __init__  # type: ignore[method-assign]
+
+
+def _factories() -> tuple[tuple[str, Callable[[NodeRuntime, Any], None]], ...]:
+    return (
         ('create_subscription', NodeRuntime.adopt_subscription),
         ('create_publisher', NodeRuntime.adopt_publisher),
         ('create_timer', NodeRuntime.adopt_timer),
     )
-    for name, adopt in factories:
-        setattr(cls, name, _wrap_factory(getattr(cls, name), adopt, env))
 
 
 def _wrap_factory(
-    factory: Callable[..., Any], adopt: Callable[[NodeRuntime, Any], None], env: RuntimeEnv
+    factory: Callable[..., Any],
+    adopt: Callable[[NodeRuntime, Any], None],
+    env: RuntimeEnv,
+    *,
+    bound_method: bool = False,
 ) -> Callable[..., Any]:
-    @functools.wraps(factory)
-    def create(self: Node, *args: Any, **kwargs: Any) -> Any:
-        entity = factory(self, *args, **kwargs)
+    """Wrap an entity factory (a class's method, or one node's bound method)."""
+
+    def adopt_unless_internal(node: Node, entity: Any) -> Any:
         # rclpy creates its own entities through the same methods (the /parameter_events
         # publisher, the /clock subscription, Rate timers); those are not the node's inputs.
-        caller = sys._getframe(1).f_globals.get('__name__', '')
+        caller = sys._getframe(2).f_globals.get('__name__', '')
         if not caller.startswith('rclpy.'):
-            adopt(NodeRuntime.of(self, env), entity)
+            adopt(NodeRuntime.of(node, env), entity)
         return entity
+
+    if bound_method:
+        node: Node = factory.__self__  # type: ignore[attr-defined]
+
+        @functools.wraps(factory)
+        def create_bound(*args: Any, **kwargs: Any) -> Any:
+            return adopt_unless_internal(node, factory(*args, **kwargs))
+
+        return create_bound
+
+    @functools.wraps(factory)
+    def create(self: Node, *args: Any, **kwargs: Any) -> Any:
+        return adopt_unless_internal(self, factory(self, *args, **kwargs))
 
     return create
 
@@ -356,6 +426,11 @@ class NodeRuntime:
         self._io = _IoWorker()
         atexit.register(self.close)
 
+    @property
+    def interval(self) -> float:
+        """Seconds between checkpoints: the supervisor's setting, else keyvars.yaml's, else 2."""
+        return self.env.interval or self.spec.checkpoint_interval or DEFAULT_INTERVAL
+
     # -- adoption of the user's entities ----------------------------------------------------
 
     def adopt_subscription(self, sub: Subscription) -> None:
@@ -483,6 +558,8 @@ class NodeRuntime:
             refused=refused,
             restore_ms=restore_ms,
             process_start_ns=_process_start_ns(),
+            interval=self.interval,
+            replay=self.spec.replay,
         )
         if not self.method.logs:
             # restart and checkpoint have nothing to replay: release right away.
@@ -504,18 +581,13 @@ class NodeRuntime:
             if ckpt is None:
                 return None
             try:
-                values = codec.decode_vars(ckpt.vars_blob)
-                if set(values) != set(self.spec.vars):
-                    raise CodecError(
-                        f'holds variables {sorted(values)}, the node has {sorted(self.spec.vars)}'
-                    )
+                with self.lock:
+                    write_state(self.spec, self.node, codec.decode_vars(ckpt.vars_blob))
             except CodecError as err:
                 # Checksum was fine but the payload is not ours: set it aside, try the older one.
                 on_refused(CheckpointError(self.checkpoints.path(ckpt.seq), str(err)))
                 continue
             with self.lock:
-                for name, value in values.items():
-                    setattr(self.node, name, value)
                 for topic, idents in ckpt.windows.items():
                     inp = self.inputs.get(topic)
                     size = protocol.window_size(inp.spec) if inp else len(idents) + 64
@@ -630,7 +702,7 @@ class NodeRuntime:
             self.held_timers.clear()
             if self.method.checkpoints or self.method.logs:
                 tick = self._checkpoint_tick if self.method.checkpoints else self._rotate_tick
-                Node.create_timer(self.node, self.env.interval, tick, callback_group=self._group)
+                Node.create_timer(self.node, self.interval, tick, callback_group=self._group)
         self._status(StatusKind.RELEASED, **self.stats)
 
     def _open_gates(self, next_segment: int) -> None:
@@ -709,8 +781,7 @@ class NodeRuntime:
         with self.lock:
             # The snapshot: the only part that needs the node paused between two callbacks.
             try:
-                values = {name: self._read_var(name) for name in self.spec.vars}
-                blob = codec.encode_vars(values)
+                blob = codec.encode_vars(read_state(self.spec, self.node))
             except CodecError as err:
                 self._error(f'checkpoint skipped: {err}')
                 return
@@ -752,13 +823,6 @@ class NodeRuntime:
             )
 
         self._io.submit(persist)
-
-    def _read_var(self, name: str) -> Any:
-        assert self.node is not None
-        try:
-            return getattr(self.node, name)
-        except AttributeError:
-            raise CodecError(f'variable {name!r} is not set on the node') from None
 
     # -- reporting ----------------------------------------------------------------------------
 

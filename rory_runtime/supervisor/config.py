@@ -6,8 +6,8 @@ Example::
       - name: integrator
         command: [python, out/integrator.py]   # run in this file's folder
         method: rory              # rory | restart | checkpoint | replay
-        checkpoint_interval: 2.0  # seconds
-        replay: paced             # paced | fast
+        checkpoint_interval: 2.0  # seconds; default: keyvars.yaml's, else 2.0
+        replay: paced             # paced | fast; default: keyvars.yaml's, else paced
     safe_state:                   # held from S1 until S4
       - topic: /e_stop
         type: std_msgs/msg/Bool
@@ -56,8 +56,9 @@ class NodeConfig:
     name: str
     command: tuple[str, ...]
     method: Method = Method.RORY
-    checkpoint_interval: float = 2.0
-    replay: ReplayPace = ReplayPace.PACED
+    # None: the node's own setting from keyvars.yaml (via rory-instrument), else the default
+    checkpoint_interval: float | None = None
+    replay: ReplayPace | None = None
     restart_on_clean_exit: bool = False
     env: Mapping[str, str] = field(default_factory=dict)
     backoff: Backoff = Backoff()
@@ -200,8 +201,10 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
     if not isinstance(method, str) or method not in {m.value for m in Method}:
         methods = ', '.join(m.value for m in Method)
         raise f.error('method', f'must be one of {methods}, got {method!r}')
-    replay = f.obj.get('replay', ReplayPace.PACED.value)
-    if not isinstance(replay, str) or replay not in {p.value for p in ReplayPace}:
+    replay = f.obj.get('replay')
+    if replay is not None and (
+        not isinstance(replay, str) or replay not in {p.value for p in ReplayPace}
+    ):
         raise f.error('replay', f'must be paced or fast, got {replay!r}')
     env = f.obj.get('env') or {}
     if not isinstance(env, dict) or not all(isinstance(k, str) for k in env):
@@ -210,8 +213,12 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         name=name,
         command=_resolve_command(command),
         method=Method(method),
-        checkpoint_interval=f.number('checkpoint_interval', 2.0),
-        replay=ReplayPace(replay),
+        checkpoint_interval=(
+            None
+            if f.obj.get('checkpoint_interval') is None
+            else f.number('checkpoint_interval', 2.0)
+        ),
+        replay=None if replay is None else ReplayPace(replay),
         restart_on_clean_exit=f.boolean('restart_on_clean_exit', False),
         env={str(k): str(v) for k, v in env.items()},
         backoff=_backoff(path, f'{where}.backoff', f.obj.get('backoff') or {}),

@@ -37,7 +37,7 @@ from ..dds import fast_rediscovery_env
 from ..errors import ProtocolError
 from ..fsutil import make_private_dir
 from ..log import SegmentStore, default_typestore
-from ..protocol import InputSpec, Mode, StatusKind
+from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
 from .config import NodeConfig, SupervisorConfig
 from .process import Child, Launcher, PopenLauncher, RestartPolicy, describe_exit
@@ -167,10 +167,13 @@ class ManagedNode:
                 protocol.ENV_INCARNATION: str(self.incarnation),
                 protocol.ENV_METHOD: self.cfg.method.value,
                 protocol.ENV_MODE: mode.value,
-                protocol.ENV_INTERVAL: repr(self.cfg.checkpoint_interval),
                 'PYTHONUNBUFFERED': '1',
             }
         )
+        if self.cfg.checkpoint_interval is not None:
+            env[protocol.ENV_INTERVAL] = repr(self.cfg.checkpoint_interval)
+        else:
+            env.pop(protocol.ENV_INTERVAL, None)
         child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder)
         self.child = child
         incarnation = self.incarnation
@@ -337,9 +340,16 @@ class ManagedNode:
             cut = (self.hello.get('restored') or {}).get('cut')
             incarnation = self.incarnation
             self.recovery.s3_replay(
-                self.replay_pub, incarnation, cut, self.cfg.replay,
+                self.replay_pub, incarnation, cut, self._replay_pace(),
                 lambda sent: self.sup.events.put(Released(self.id, incarnation, sent)),
             )
+
+    def _replay_pace(self) -> ReplayPace:
+        """The supervisor config's pace, else the node's own (keyvars.yaml), else paced."""
+        if self.cfg.replay is not None:
+            return self.cfg.replay
+        wanted = (self.hello or {}).get('replay')
+        return ReplayPace(wanted) if wanted in {p.value for p in ReplayPace} else ReplayPace.PACED
 
     def _armed(self) -> bool:
         """The ring matches every publisher the node's own readers have (fresh start)."""
@@ -361,9 +371,10 @@ class ManagedNode:
                 ' '.join(f'{k[:-3]}={v:.1f}' for k, v in timing.items() if k != 'total_ms'),
                 rec.crashes, stats['replayed'], stats['duplicates'],
             )
+            pace = self._replay_pace().value if self.cfg.method.logs else None
             self.sup.events_log.write(
                 'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
-                incarnation=self.incarnation, **timing, **stats,
+                incarnation=self.incarnation, replay=pace, **timing, **stats,
             )
             if rec.ring is None or not rec.ring.active_topics:
                 self._end_recovery()

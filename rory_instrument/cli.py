@@ -1,4 +1,4 @@
-"""``rory-instrument SRC --vars keyvars.yaml -o OUT``: copy SRC, instrumenting node classes.
+"""``rory-instrument SRC --vars keyvars.yaml -o OUT``: copy SRC, instrumenting the listed nodes.
 
 Everything is validated and rewritten in memory first; OUT is then built in a temporary
 directory next to it and renamed into place, so an error never leaves a partial OUT.
@@ -7,17 +7,21 @@ directory next to it and renamed into place, so an error never leaves a partial 
 from __future__ import annotations
 
 import argparse
+import posixpath
 import shutil
 import stat
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path, PurePosixPath
 
+from libcst.metadata import MetadataWrapper
+
+from rory_instrument.checks import ModuleFacts, collect_module
 from rory_instrument.config import KeyVars, NodeSpec, load_keyvars
 from rory_instrument.errors import InstrumentError, PathError
 from rory_instrument.manifest import MANIFEST_NAME, ManifestEntry, render_manifest
-from rory_instrument.transform import instrument_source
+from rory_instrument.transform import instrument_source, parse_source
 
 EXIT_OK = 0
 EXIT_INPUT_ERROR = 2
@@ -70,6 +74,87 @@ def _source_file(keyvars: KeyVars, spec: NodeSpec, src: Path, src_shown: str) ->
     if rel == MANIFEST_NAME:
         raise keyvars.error(spec, 'file', f'file {spec.file!r} is reserved for the manifest')
     return rel
+
+
+def base_candidates(file: str, qualified: str) -> Iterator[tuple[str, str]]:
+    """Yields the (module file, class name) pairs an imported class name may denote in SRC.
+
+    ``.base.BaseNode`` (``from .base import BaseNode``) is looked for relative to ``file``'s
+    folder; ``pkg.base.BaseNode`` relative to ``file``'s folder and each folder above it up
+    to SRC, as Python would find it from the script's folder or an installed package. The
+    longest module path comes first (``pkg/base.py`` for ``BaseNode`` before ``pkg.py`` for
+    ``base.BaseNode``).
+
+    Args:
+        file: The importing file, relative to SRC.
+        qualified: The qualified name libcst gives the base.
+
+    Yields:
+        A file relative to SRC (which may not exist) and a dotted class name.
+    """
+    name = qualified.lstrip('.')
+    dots = len(qualified) - len(name)
+    parts = name.split('.')
+    here = posixpath.dirname(file) or '.'
+    if dots:
+        roots = [posixpath.normpath(posixpath.join(here, *['..'] * (dots - 1)))]
+    else:
+        roots = [here]
+        while roots[-1] != '.':
+            roots.append(posixpath.dirname(roots[-1]) or '.')
+    for root in roots:
+        if root == '..' or root.startswith('../'):
+            continue
+        for k in range(len(parts) - 1, 0, -1):
+            module = posixpath.normpath(posixpath.join(root, *parts[:k]))
+            for candidate in (f'{module}.py', f'{module}/__init__.py'):
+                yield candidate, '.'.join(parts[k:])
+
+
+class SourceTree:
+    """Finds base classes of node classes in the other files of SRC.
+
+    Used as the ``resolve`` of ``instrument_source``: a node class deriving from a Node
+    subclass defined in another module of SRC is then a node too, and the attributes that
+    class assigns count. Each file is parsed once.
+
+    Args:
+        src: SRC, resolved.
+        src_shown: SRC as given on the command line, to name files in messages.
+    """
+
+    def __init__(self, src: Path, src_shown: str) -> None:
+        self.src = src
+        self.src_shown = src_shown
+        self.modules: dict[str, ModuleFacts | None] = {}
+
+    def __call__(self, module: ModuleFacts, qualified: str) -> tuple[ModuleFacts, str] | None:
+        for file, class_name in base_candidates(module.file, qualified):
+            found = self.module(file)
+            if found is not None and class_name in found.classes:
+                return found, class_name
+        return None
+
+    def module(self, file: str) -> ModuleFacts | None:
+        """Returns the facts of a file of SRC, or None if there is no such regular file.
+
+        Raises:
+            SourceError: The file is not valid Python.
+        """
+        if file not in self.modules:
+            path = (self.src / file).resolve()
+            facts = None
+            if path.is_relative_to(self.src) and path.is_file():
+                display = str(Path(self.src_shown) / file)
+                try:
+                    source = path.read_bytes()
+                except OSError:
+                    source = None
+                if source is not None:
+                    wrapper = MetadataWrapper(parse_source(source, display))
+                    facts = collect_module(wrapper, file, display)
+            self.modules[file] = facts
+        return self.modules[file]
 
 
 def _ignore_manifest(src: Path) -> Callable[[str, list[str]], list[str]]:
@@ -125,7 +210,7 @@ def instrument_tree(
         check: Validate only; write nothing even if ``out`` is given.
 
     Returns:
-        One entry per instrumented class, in keyvars.yaml order.
+        One entry per instrumented node, in keyvars.yaml order.
 
     Raises:
         InstrumentError: Any problem with the inputs; nothing has been written.
@@ -136,6 +221,7 @@ def instrument_tree(
     out_dir = None if out is None else _check_out(out, src_dir)
     keyvars = load_keyvars(keyvars_path, keyvars_path)
 
+    tree = SourceTree(src_dir, src)
     by_file: dict[str, list[NodeSpec]] = {}
     for spec in keyvars.nodes:
         by_file.setdefault(_source_file(keyvars, spec, src_dir, src), []).append(spec)
@@ -147,12 +233,14 @@ def instrument_tree(
             source = (src_dir / rel).read_bytes()
         except OSError as e:
             raise keyvars.error(specs[0], 'file', f'cannot read {rel}: {e.strerror}') from e
-        result = instrument_source(source, keyvars, rel, display=display, specs=specs)
+        result = instrument_source(source, keyvars, rel, display=display, specs=specs,
+                                   resolve=tree)
         files[rel] = result.code
         for done in result.classes:
             spec = done.spec
             entry = ManifestEntry(rel, spec.class_name, spec.vars, done.source_sha256,
-                                  done.manifest, spec.checkpoint_interval, spec.replay)
+                                  done.manifest, spec.checkpoint_interval, spec.replay,
+                                  spec.module_vars)
             entries.append((spec.index, entry))
     ordered = [entry for _index, entry in sorted(entries, key=lambda pair: pair[0])]
 
@@ -164,16 +252,27 @@ def instrument_tree(
     return ordered
 
 
+def _describe(entry: ManifestEntry) -> str:
+    """Returns how the command line reports an entry: ``file:Class vars=a,b module_vars=c``."""
+    parts = [entry.file if entry.class_name is None else f'{entry.file}:{entry.class_name}']
+    if entry.class_name is not None:
+        parts.append(f'vars={",".join(entry.vars)}')
+    if entry.module_vars:
+        parts.append(f'module_vars={",".join(entry.module_vars)}')
+    return ' '.join(parts)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Returns the command-line parser."""
     parser = argparse.ArgumentParser(
         prog='rory-instrument',
-        description='Copy SRC to OUT, instrumenting the ROS 2 node classes listed in '
-        'keyvars.yaml so that rory_runtime checkpoints and restores their state.',
+        description='Copy SRC to OUT, instrumenting the ROS 2 nodes listed in keyvars.yaml '
+        '(node classes and the module globals of nodes written as functions) so that '
+        'rory_runtime checkpoints and restores their state.',
     )
     parser.add_argument('src', metavar='SRC', help='directory with the node sources')
     parser.add_argument('--vars', required=True, metavar='KEYVARS',
-                        help='keyvars.yaml: classes to instrument and attributes to keep')
+                        help='keyvars.yaml: nodes to instrument and the variables they keep')
     parser.add_argument('-o', '--out', metavar='OUT',
                         help='output directory (required unless --check); replaced if it '
                         'is a previous output')
@@ -202,5 +301,5 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INPUT_ERROR
     verb = 'checked' if args.check else 'instrumented'
     for entry in entries:
-        print(f'{verb} {entry.file}:{entry.class_name} vars={",".join(entry.vars)}')
+        print(f'{verb} {_describe(entry)}')
     return EXIT_OK

@@ -1,4 +1,4 @@
-"""Reading keyvars.yaml: which node classes to instrument and which attributes they keep.
+"""Reading keyvars.yaml: which nodes to instrument and which variables make up their state.
 
 The file is parsed with ``yaml.compose`` rather than ``yaml.safe_load`` so that every value
 keeps its source position; each error then points at the offending line and column of
@@ -7,29 +7,50 @@ keyvars.yaml. The shape is::
     nodes:
       - file: integrator.py        # relative to SRC
         class: Integrator          # dotted for nested classes: Outer.Inner
-        vars: [total, count, history]
+        vars: [total, ekf.P]       # self.<path> attributes; dotted paths reach inside
+        module_vars: [counter]     # optional: module globals (nodes written as functions)
         checkpoint_interval: 0.5   # optional, seconds
         replay: paced              # optional, 'paced' or 'fast'
 
-Adding a per-node key means adding one parser to ``_NODE_FIELDS`` and one field to
-``NodeSpec``; nothing else changes.
+An entry names ``class`` with ``vars``, or ``module_vars``, or both (a class may then leave
+out ``vars``). Plain scalars are typed as YAML 1.2 (the core schema editors use), so
+``vars: [on]`` names an attribute ``on`` while ``file: 123`` is a number, not a path.
+``keyvars.schema.json`` next to this module describes the same shape as a JSON Schema for
+editors; this parser stays the authority, for its ``file:line:col`` messages and the rules a
+schema cannot say (duplicate entries and keys, overlapping paths, Python identifiers).
+
+Adding a per-node key means adding one parser to ``_NODE_FIELDS``, one field to ``NodeSpec``
+and one property to the schema.
 """
 
 from __future__ import annotations
 
+import json
 import keyword
 import math
 import posixpath
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import yaml
 
 from rory_instrument.errors import ConfigError
 
 REPLAY_MODES = ('paced', 'fast')
+# The JSON Schema of keyvars.yaml, shipped next to this module.
+SCHEMA_NAME = 'keyvars.schema.json'
+
+# YAML 1.2 core schema: the plain scalars that are not strings.
+_YAML12_NULL = re.compile(r'~|null|Null|NULL|')
+_YAML12_BOOL = re.compile(r'true|True|TRUE|false|False|FALSE')
+_YAML12_INT = re.compile(r'[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+')
+_YAML12_FLOAT = re.compile(
+    r'[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?|[-+]?\.(inf|Inf|INF)|\.(nan|NaN|NAN)'
+)
 
 
 @dataclass(frozen=True)
@@ -52,26 +73,36 @@ class Mark:
 
 @dataclass(frozen=True)
 class NodeSpec:
-    """One entry of ``nodes:``: a class to instrument and the attributes it checkpoints.
+    """One entry of ``nodes:``: a node to instrument and the variables it checkpoints.
 
     Attributes:
         index: Position in the ``nodes`` list, used to name fields in messages.
         file: Source file relative to SRC, as written (normalised, POSIX separators).
-        class_name: Dotted class name inside ``file`` (``Outer.Inner`` for nested classes).
-        vars: Names of the ``self.<name>`` attributes to checkpoint, in the given order.
+        class_name: Dotted class name inside ``file`` (``Outer.Inner`` for nested classes),
+            or None for a node written as functions (then ``module_vars`` is set).
+        vars: Attribute paths below ``self`` to checkpoint (``total``, ``ekf.P``), in the
+            given order; empty when ``class_name`` is None.
         checkpoint_interval: Seconds between checkpoints, or None for the runtime default.
         replay: ``'paced'`` or ``'fast'``, or None for the runtime default.
+        module_vars: Paths of module globals to checkpoint (``counter``, ``state.pose``).
         marks: Position of each field, keyed by its path below the node (``''`` for the
-            node itself, ``'class'``, ``'vars'``, ``'vars[2]'``...). Not compared.
+            node itself, ``'class'``, ``'vars'``, ``'vars[2]'``, ``'module_vars[0]'``...).
+            Not compared.
     """
 
     index: int
     file: str
-    class_name: str
+    class_name: str | None
     vars: tuple[str, ...]
     checkpoint_interval: float | None = None
     replay: str | None = None
+    module_vars: tuple[str, ...] = ()
     marks: Mapping[str, Mark] = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def label(self) -> str:
+        """Returns how messages and the command line name the entry: ``file:Class`` or ``file``."""
+        return self.file if self.class_name is None else f'{self.file}:{self.class_name}'
 
     def field_path(self, name: str = '') -> str:
         """Returns the dotted path of a field for messages, e.g. ``nodes[0].vars``."""
@@ -156,6 +187,56 @@ def parse_keyvars(text: str, path: str) -> KeyVars:
     return _Parser(path).keyvars(root)
 
 
+def keyvars_schema() -> dict[str, Any]:
+    """Returns the JSON Schema of keyvars.yaml shipped with the package (draft 2020-12)."""
+    text = resources.files(__package__).joinpath(SCHEMA_NAME).read_text(encoding='utf-8')
+    return cast(dict[str, Any], json.loads(text))
+
+
+def yaml12_type(node: yaml.ScalarNode) -> str | None:
+    """Returns what a scalar is under the YAML 1.2 core schema when it is not a string.
+
+    PyYAML types plain scalars by YAML 1.1 (``on`` is a boolean there); editors and JSON
+    Schema validators see YAML 1.2, where only these plain forms are not strings.
+
+    Args:
+        node: A composed scalar.
+
+    Returns:
+        ``'null'``, ``'the boolean <text>'`` or ``'the number <text>'``, or None for a string
+        (every quoted or block scalar, and every other plain one).
+    """
+    if node.style is not None:
+        return None
+    text = str(node.value)
+    if _YAML12_NULL.fullmatch(text):
+        return 'null'
+    if _YAML12_BOOL.fullmatch(text):
+        return f'the boolean {text}'
+    if _YAML12_INT.fullmatch(text) or _YAML12_FLOAT.fullmatch(text):
+        return f'the number {text}'
+    return None
+
+
+def yaml12_number(node: yaml.ScalarNode) -> float | None:
+    """Returns a plain scalar's value if it is a number under the YAML 1.2 core schema."""
+    text = str(node.value)
+    if node.style is not None:
+        return None
+    if _YAML12_INT.fullmatch(text):
+        return float(int(text, 0) if text[:2] in ('0o', '0x') else int(text))
+    if _YAML12_FLOAT.fullmatch(text):
+        return float(text.lower().replace('.inf', 'inf').replace('.nan', 'nan'))
+    return None
+
+
+def path_overlap(first: str, second: str) -> bool:
+    """Returns whether one attribute path is the other or lies inside it (``ekf``, ``ekf.P``)."""
+    a, b = first.split('.'), second.split('.')
+    n = min(len(a), len(b))
+    return a[:n] == b[:n]
+
+
 # Parses the value of one node field; returns the value to store in NodeSpec.
 _FieldParser = Callable[['_Parser', yaml.Node, str, dict[str, Mark]], Any]
 
@@ -199,14 +280,15 @@ class _Parser:
         if not isinstance(nodes, yaml.SequenceNode) or not nodes.value:
             raise self.fail(nodes, 'nodes: expected a non-empty list of node entries')
         specs = tuple(self.node(i, n) for i, n in enumerate(nodes.value))
-        first: dict[tuple[str, str], NodeSpec] = {}
+        first: dict[tuple[str, str | None], NodeSpec] = {}
         for spec in specs:
             key = (spec.file, spec.class_name)
             if key in first:
                 line = first[key].mark().line
+                what = 'entry' if spec.class_name is not None else 'module_vars entry'
                 raise self.fail(
                     spec.mark(),
-                    f'{spec.field_path()}: duplicate entry for {spec.file}:{spec.class_name} '
+                    f'{spec.field_path()}: duplicate {what} for {spec.label} '
                     f'(first at line {line})',
                 )
             first[key] = spec
@@ -215,8 +297,9 @@ class _Parser:
     def node(self, index: int, node: yaml.Node) -> NodeSpec:
         where = f'nodes[{index}]'
         items = self.mapping(node, where, tuple(_NODE_FIELDS), _REQUIRED_NODE_FIELDS)
+        self.node_shape(node, where, items)
         marks: dict[str, Mark] = {'': Mark.of(node)}
-        values: dict[str, Any] = {}
+        values: dict[str, Any] = {'class_name': None, 'vars': ()}
         for name, (_key, value) in items.items():
             marks[name] = Mark.of(value)
             values[_NODE_FIELD_ATTRS.get(name, name)] = _NODE_FIELDS[name](
@@ -224,21 +307,70 @@ class _Parser:
             )
         return NodeSpec(index=index, marks=marks, **values)
 
-    def text(self, node: yaml.Node, where: str, what: str) -> str:
-        """Returns a scalar's text as written.
+    def node_shape(
+        self, node: yaml.Node, where: str, items: Mapping[str, tuple[yaml.Node, yaml.Node]]
+    ) -> None:
+        """Requires ``class`` with ``vars``, or ``module_vars``, or both."""
+        if 'vars' in items and 'class' not in items:
+            raise self.fail(node, f"{where}: missing required key 'class'")
+        if 'module_vars' in items:
+            return
+        if 'class' in items and 'vars' not in items:
+            raise self.fail(node, f"{where}: missing required key 'vars'")
+        if 'class' not in items:
+            raise self.fail(
+                node,
+                f"{where}: expected 'class' and 'vars' (a Node subclass and its attributes), "
+                "'module_vars' (module globals), or both",
+            )
 
-        The raw text is used instead of PyYAML's implicit typing, which would turn an
-        attribute named ``on`` or ``yes`` into a boolean.
+    def text(self, node: yaml.Node, where: str, what: str) -> str:
+        """Returns a string scalar's text as written.
+
+        The raw text is used instead of PyYAML's implicit typing, which follows YAML 1.1 and
+        would turn an attribute named ``on`` or ``yes`` into a boolean; a plain scalar that
+        YAML 1.2 reads as null, a boolean or a number is refused, as the schema does.
         """
         if not isinstance(node, yaml.ScalarNode) or not node.value:
             raise self.fail(node, f'{where}: expected {what}')
+        other = yaml12_type(node)
+        if other is not None:
+            raise self.fail(node, f'{where}: expected {what}, got {other} (quote it if it is '
+                            'meant as a name)')
         return str(node.value)
 
-    def identifier(self, node: yaml.Node, where: str) -> str:
+    def attribute_path(self, node: yaml.Node, where: str) -> str:
+        """Returns an attribute path: identifiers separated by dots (``total``, ``ekf.P``)."""
         name = self.text(node, where, 'an attribute name')
-        if not name.isidentifier() or keyword.iskeyword(name):
+        parts = name.split('.')
+        if all(part.isidentifier() and not keyword.iskeyword(part) for part in parts):
+            return name
+        if len(parts) == 1:
             raise self.fail(node, f'{where}: {name!r} is not a Python identifier')
-        return name
+        raise self.fail(node, f'{where}: {name!r} is not an attribute path (Python '
+                        'identifiers separated by dots, e.g. ekf.P)')
+
+    def paths(
+        self, node: yaml.Node, where: str, marks: dict[str, Mark], key: str
+    ) -> tuple[str, ...]:
+        """Returns a non-empty list of distinct, non-overlapping attribute paths."""
+        if not isinstance(node, yaml.SequenceNode) or not node.value:
+            raise self.fail(node, f'{where}: expected a non-empty list of attribute names')
+        names: list[str] = []
+        for i, item in enumerate(node.value):
+            marks[f'{key}[{i}]'] = Mark.of(item)
+            name = self.attribute_path(item, f'{where}[{i}]')
+            if name in names:
+                raise self.fail(item, f'{where}[{i}]: duplicate var {name!r}')
+            for j, other in enumerate(names):
+                if path_overlap(name, other):
+                    raise self.fail(
+                        item,
+                        f'{where}[{i}]: {name!r} overlaps {other!r} ({key}[{j}]); list either '
+                        'the whole object or parts of it',
+                    )
+            names.append(name)
+        return tuple(names)
 
 
 def _parse_file(p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]) -> str:
@@ -258,16 +390,13 @@ def _parse_class(p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]
 def _parse_vars(
     p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]
 ) -> tuple[str, ...]:
-    if not isinstance(node, yaml.SequenceNode) or not node.value:
-        raise p.fail(node, f'{where}: expected a non-empty list of attribute names')
-    names: list[str] = []
-    for i, item in enumerate(node.value):
-        marks[f'vars[{i}]'] = Mark.of(item)
-        name = p.identifier(item, f'{where}[{i}]')
-        if name in names:
-            raise p.fail(item, f'{where}[{i}]: duplicate var {name!r}')
-        names.append(name)
-    return tuple(names)
+    return p.paths(node, where, marks, 'vars')
+
+
+def _parse_module_vars(
+    p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]
+) -> tuple[str, ...]:
+    return p.paths(node, where, marks, 'module_vars')
 
 
 def _parse_interval(p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]) -> float:
@@ -277,11 +406,8 @@ def _parse_interval(p: _Parser, node: yaml.Node, where: str, marks: dict[str, Ma
     # Quoted scalars are strings even when they look like numbers.
     if node.style is not None:
         raise p.fail(node, f'{problem}, got the string {node.value!r}')
-    try:
-        value = float(node.value)
-    except ValueError:
-        raise p.fail(node, f'{problem}, got {node.value!r}') from None
-    if not math.isfinite(value) or value <= 0:
+    value = yaml12_number(node)
+    if value is None or not math.isfinite(value) or value <= 0:
         raise p.fail(node, f'{problem}, got {node.value!r}')
     return value
 
@@ -299,9 +425,11 @@ _NODE_FIELDS: dict[str, _FieldParser] = {
     'file': _parse_file,
     'class': _parse_class,
     'vars': _parse_vars,
+    'module_vars': _parse_module_vars,
     'checkpoint_interval': _parse_interval,
     'replay': _parse_replay,
 }
-_REQUIRED_NODE_FIELDS = ('file', 'class', 'vars')
+# 'class', 'vars' and 'module_vars' are required in combinations; see _Parser.node_shape.
+_REQUIRED_NODE_FIELDS = ('file',)
 # YAML keys whose NodeSpec attribute is spelled differently ('class' is a keyword).
 _NODE_FIELD_ATTRS = {'class': 'class_name'}

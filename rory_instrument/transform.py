@@ -1,62 +1,96 @@
-"""Rewriting one node module: add ``@rory_runtime.checkpointed(...)`` and ``import rory_runtime``.
+"""Rewriting one node module: ``import rory_runtime``, the decorator and the module call.
 
-The rewrite is a handful of small libcst passes, one per concern:
+For a node class the rewrite adds one decorator, and for a node written as functions, whose
+state is in module globals, one call right after ``import rory_runtime``::
 
-* ``ClassCollector`` reads what the checks need: every class, its bases, and the
-  ``self.<name>`` attributes its methods assign.
+    import rory_runtime
+    rory_runtime.checkpoint_module(__name__, vars=("counter",), manifest="sha256:...")
+
+
+    @rory_runtime.checkpointed(vars=("total", "ekf.P"), manifest="sha256:...")
+    class Integrator(Node):
+
+Either takes ``checkpoint_interval=1.0, replay="fast"`` before the digest when keyvars.yaml
+sets them; a class whose entry also lists module globals gets ``module_vars=("counter",)``
+after its ``vars`` instead of a module call. The checks run first
+(``rory_instrument.checks``); the rewrite is then a handful of small libcst passes, one per
+concern:
+
 * ``StripRoryTransformer`` removes RORY's own additions, so the source hash in the manifest
   is the same for a file and for its instrumented output.
+* ``CheckpointModuleTransformer`` adds the module call, or updates the arguments of one
+  that is already there.
 * ``CheckpointDecoratorTransformer`` adds the decorator, or updates the arguments of one
-  that is already there, which is what makes instrumenting twice a no-op.
+  that is already there. Updating in place is what makes instrumenting twice a no-op.
 * ``EnsureRuntimeImportTransformer`` adds ``import rory_runtime`` after the leading imports.
 
 Names are matched by qualified name (``QualifiedNameProvider``), so ``from rclpy.node
-import Node as N`` and ``import rclpy.node as rn`` are recognised like the plain spelling.
+import Node as N``, ``import rclpy.node as rn`` and ``import rory_runtime as rr`` are
+recognised like the plain spelling.
 """
 
 from __future__ import annotations
 
 import ast
 import hashlib
-from collections.abc import Collection, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 
 import libcst as cst
 import libcst.matchers as m
-from libcst.metadata import (
-    MetadataWrapper,
-    PositionProvider,
-    QualifiedName,
-    QualifiedNameProvider,
-)
+from libcst.metadata import MetadataWrapper, QualifiedName, QualifiedNameProvider
 
+from rory_instrument.checks import (
+    NODE_BASE,
+    NODE_BASES,
+    BaseResolver,
+    SpecChecker,
+    class_qualname,
+    collect_module,
+)
 from rory_instrument.config import KeyVars, NodeSpec
 from rory_instrument.errors import SourceError
 from rory_instrument.manifest import manifest_digest
 
+__all__ = [
+    'NODE_BASE',
+    'NODE_BASES',
+    'CheckpointDecoratorTransformer',
+    'CheckpointModuleTransformer',
+    'EnsureRuntimeImportTransformer',
+    'InstrumentedClass',
+    'InstrumentedModule',
+    'StripRoryTransformer',
+    'checkpoint_module_call',
+    'checkpointed_call',
+    'instrument_source',
+    'parse_source',
+    'source_sha256',
+]
+
 RUNTIME_MODULE = 'rory_runtime'
 CHECKPOINTED = f'{RUNTIME_MODULE}.checkpointed'
-# rclpy's Node and the rclpy classes derived from it that a node class may extend.
-NODE_BASES = frozenset(
-    {
-        'rclpy.node.Node',
-        'rclpy.lifecycle.Node',
-        'rclpy.lifecycle.LifecycleNode',
-        'rclpy.lifecycle.node.LifecycleNode',
-    }
-)
-NODE_BASE = 'rclpy.node.Node'
+CHECKPOINT_MODULE = f'{RUNTIME_MODULE}.checkpoint_module'
 
 
-def _names_checkpointed(names: Collection[QualifiedName]) -> bool:
-    return any(name.name == CHECKPOINTED for name in names)
+def _names(qualified: str) -> Callable[[Collection[QualifiedName]], bool]:
+    def named(names: Collection[QualifiedName]) -> bool:
+        return any(name.name == qualified for name in names)
+
+    return named
 
 
 # `rory_runtime.checkpointed`, however rory_runtime or checkpointed was imported.
-IS_CHECKPOINTED = m.MatchMetadataIfTrue(QualifiedNameProvider, _names_checkpointed)
+IS_CHECKPOINTED = m.MatchMetadataIfTrue(QualifiedNameProvider, _names(CHECKPOINTED))
+# `rory_runtime.checkpoint_module`, however it was imported.
+IS_CHECKPOINT_MODULE = m.MatchMetadataIfTrue(QualifiedNameProvider, _names(CHECKPOINT_MODULE))
 # RORY's decorator, called (`@rory_runtime.checkpointed(...)`) or, if someone wrote it by
 # hand, bare (`@rory_runtime.checkpointed`).
 RORY_DECORATOR = m.Decorator(decorator=m.Call(func=IS_CHECKPOINTED) | IS_CHECKPOINTED)
+# RORY's module call, alone on its line: `rory_runtime.checkpoint_module(__name__, ...)`.
+RORY_MODULE_CALL_LINE = m.SimpleStatementLine(
+    body=[m.Expr(value=m.Call(func=IS_CHECKPOINT_MODULE))]
+)
 # Exactly the line RORY adds: `import rory_runtime`.
 RUNTIME_IMPORT_LINE = m.SimpleStatementLine(
     body=[m.Import(names=[m.ImportAlias(name=m.Name(RUNTIME_MODULE), asname=None)])]
@@ -65,48 +99,27 @@ RUNTIME_IMPORT_LINE = m.SimpleStatementLine(
 RUNTIME_IMPORT = m.Import(
     names=[m.ZeroOrMore(), m.ImportAlias(name=m.Name(RUNTIME_MODULE)), m.ZeroOrMore()]
 )
+# A line with such an import.
+RUNTIME_IMPORT_STATEMENT = m.SimpleStatementLine(
+    body=[m.ZeroOrMore(), RUNTIME_IMPORT, m.ZeroOrMore()]
+)
 # A line of the leading import block (`from __future__` included).
 IMPORT_LINE = m.SimpleStatementLine(body=[m.AtLeastN(m.Import() | m.ImportFrom(), n=1)])
 DOCSTRING_LINE = m.SimpleStatementLine(
     body=[m.Expr(value=m.SimpleString() | m.ConcatenatedString())]
-)
-# Methods whose first parameter is not the instance.
-NOT_INSTANCE_METHOD = m.Decorator(decorator=m.Name('staticmethod') | m.Name('classmethod'))
-# `setattr(obj, 'name', value)` with a literal name.
-SETATTR_CALL = m.Call(
-    func=m.Name('setattr'), args=[m.Arg(keyword=None), m.Arg(value=m.SimpleString()), m.Arg()]
 )
 # Top-level definitions; RORY's import must come before the first one to be usable there.
 DEFINITION = m.ClassDef() | m.FunctionDef()
 
 
 @dataclass(frozen=True)
-class ClassFacts:
-    """What the checks need to know about one class of the module.
-
-    Attributes:
-        name: Dotted qualified name, as Python's ``__qualname__`` (``Outer.Inner``).
-        line: 1-based line of the ``class`` keyword.
-        col: 1-based column of the ``class`` keyword.
-        bases: Each positional base: its source text and its possible qualified names.
-        assigned: Attribute names assigned as ``self.<name>`` in the class's own methods.
-    """
-
-    name: str
-    line: int
-    col: int
-    bases: tuple[tuple[str, frozenset[str]], ...]
-    assigned: frozenset[str]
-
-
-@dataclass(frozen=True)
 class InstrumentedClass:
-    """One class that was decorated.
+    """One node entry that was instrumented: a class decorated, or the module call added.
 
     Attributes:
-        spec: Its keyvars.yaml entry.
+        spec: Its keyvars.yaml entry (``spec.class_name`` is None for the module call).
         source_sha256: SHA-256 of the module's source with RORY's additions removed.
-        manifest: The ``sha256:...`` digest written into the decorator.
+        manifest: The ``sha256:...`` digest written into the decorator or call.
     """
 
     spec: NodeSpec
@@ -120,140 +133,15 @@ class InstrumentedModule:
 
     Attributes:
         code: The new source, in the file's own encoding.
-        classes: The classes decorated, in keyvars.yaml order.
+        classes: The entries instrumented, in keyvars.yaml order.
     """
 
     code: bytes
     classes: tuple[InstrumentedClass, ...]
 
 
-def class_qualname(resolver: cst.MetadataDependent, node: cst.ClassDef) -> str | None:
-    """Returns the dotted qualified name of a class, or None if libcst cannot tell."""
-    names = resolver.get_metadata(QualifiedNameProvider, node.name, set())
-    local = sorted(n.name for n in names)
-    return local[0] if local else None
-
-
-class SelfAssignments(cst.CSTVisitor):
-    """Collects the ``<self>.<name>`` attributes a method body assigns.
-
-    Assignment forms: ``=``, annotated ``=``, augmented, tuple/list unpacking (starred
-    too), ``with ... as``, ``for ... in`` (comprehensions too), and ``setattr(self, 'x',
-    ...)``. Nested functions are searched because node callbacks are often closures over
-    ``self``; nested classes are not, since there ``self`` is another object.
-
-    Args:
-        self_name: The method's first parameter name, usually ``self``.
-    """
-
-    def __init__(self, self_name: str) -> None:
-        super().__init__()
-        self.self_name = self_name
-        self.assigned: set[str] = set()
-
-    def _target(self, target: cst.BaseExpression) -> None:
-        if isinstance(target, cst.Attribute):
-            if m.matches(target.value, m.Name(self.self_name)):
-                self.assigned.add(target.attr.value)
-        elif isinstance(target, cst.Tuple | cst.List):
-            for element in target.elements:
-                self._target(element.value)
-
-    def visit_Assign(self, node: cst.Assign) -> None:
-        for target in node.targets:
-            self._target(target.target)
-
-    def visit_AnnAssign(self, node: cst.AnnAssign) -> None:
-        # `self.x: int` alone declares without assigning; only count it with a value.
-        if node.value is not None:
-            self._target(node.target)
-
-    def visit_AugAssign(self, node: cst.AugAssign) -> None:
-        self._target(node.target)
-
-    def visit_For(self, node: cst.For) -> None:
-        self._target(node.target)
-
-    def visit_CompFor(self, node: cst.CompFor) -> None:
-        self._target(node.target)
-
-    def visit_WithItem(self, node: cst.WithItem) -> None:
-        if node.asname is not None:
-            self._target(node.asname.name)
-
-    def visit_Call(self, node: cst.Call) -> None:
-        if m.matches(node, SETATTR_CALL) and m.matches(
-            node.args[0].value, m.Name(self.self_name)
-        ):
-            name = node.args[1].value
-            assert isinstance(name, cst.SimpleString)
-            self.assigned.add(str(name.evaluated_value))
-
-    def visit_ClassDef(self, node: cst.ClassDef) -> bool:
-        return False
-
-    def visit_FunctionDef(self, node: cst.FunctionDef) -> bool:
-        # A nested function that takes its own `self` is not about this instance.
-        params = node.params
-        every = (*params.posonly_params, *params.params, *params.kwonly_params)
-        return all(p.name.value != self.self_name for p in every)
-
-
-def _instance_methods(node: cst.ClassDef) -> Iterator[tuple[cst.FunctionDef, str]]:
-    """Yields each method defined directly in a class body with its instance parameter."""
-    if not isinstance(node.body, cst.IndentedBlock):
-        return
-    for statement in node.body.body:
-        if not isinstance(statement, cst.FunctionDef):
-            continue
-        if any(m.matches(d, NOT_INSTANCE_METHOD) for d in statement.decorators):
-            continue
-        params = (*statement.params.posonly_params, *statement.params.params)
-        if params:
-            yield statement, params[0].name.value
-
-
-class ClassCollector(cst.CSTVisitor):
-    """Collects ``ClassFacts`` for every class of a module, in source order.
-
-    Args:
-        module: The module being visited, to render base expressions for messages.
-    """
-
-    METADATA_DEPENDENCIES = (QualifiedNameProvider, PositionProvider)
-
-    def __init__(self, module: cst.Module) -> None:
-        super().__init__()
-        self.module = module
-        self.classes: dict[str, ClassFacts] = {}
-
-    def visit_ClassDef(self, node: cst.ClassDef) -> None:
-        name = class_qualname(self, node)
-        if name is None or name in self.classes:
-            return
-        start = self.get_metadata(PositionProvider, node).start
-        bases = tuple(
-            (
-                self.module.code_for_node(arg.value),
-                frozenset(
-                    q.name for q in self.get_metadata(QualifiedNameProvider, arg.value, set())
-                ),
-            )
-            for arg in node.bases
-            if arg.keyword is None
-        )
-        assigned: set[str] = set()
-        for method, self_name in _instance_methods(node):
-            collector = SelfAssignments(self_name)
-            method.body.visit(collector)
-            assigned |= collector.assigned
-        self.classes[name] = ClassFacts(
-            name, start.line, start.column + 1, bases, frozenset(assigned)
-        )
-
-
 class StripRoryTransformer(cst.CSTTransformer):
-    """Removes RORY's decorators and top-level ``import rory_runtime`` lines.
+    """Removes RORY's decorators, module calls and top-level ``import rory_runtime`` lines.
 
     Used only to compute the source hash: a file and its instrumented output strip to the
     same text, so both get the same manifest.
@@ -269,42 +157,138 @@ class StripRoryTransformer(cst.CSTTransformer):
         return updated_node
 
     def leave_Module(self, original_node: cst.Module, updated_node: cst.Module) -> cst.Module:
-        body = [s for s in updated_node.body if not m.matches(s, RUNTIME_IMPORT_LINE)]
+        # Only decorators were removed below, so the statements still align.
+        pairs = zip(original_node.body, updated_node.body, strict=True)
+        body = [
+            updated
+            for original, updated in pairs
+            if not m.matches(updated, RUNTIME_IMPORT_LINE)
+            and not m.matches(original, RORY_MODULE_CALL_LINE, metadata_resolver=self)
+        ]
         return updated_node.with_changes(body=body)
 
 
-def checkpointed_call(runtime: str, vars: Sequence[str], manifest: str) -> cst.Call:
-    """Builds ``<runtime>.checkpointed(vars=(...), manifest="...")``.
+def _arguments_source(
+    vars: Sequence[str],
+    manifest: str,
+    *,
+    module_vars: Sequence[str] = (),
+    checkpoint_interval: float | None = None,
+    replay: str | None = None,
+) -> str:
+    """Returns the keyword arguments of RORY's calls, unset optional ones left out.
 
-    Args:
-        runtime: The name rory_runtime is bound to in the module.
-        vars: Attribute names; identifiers, so they need no escaping.
-        manifest: The ``sha256:...`` digest.
-
-    Returns:
-        The call expression.
+    Paths are identifiers joined by dots and the digest is hex, so nothing needs escaping.
     """
-    names = ', '.join(f'"{v}"' for v in vars) + (',' if len(vars) == 1 else '')
-    call = cst.parse_expression(f'{runtime}.checkpointed(vars=({names}), manifest="{manifest}")')
+
+    def names(values: Sequence[str]) -> str:
+        return '(' + ', '.join(f'"{v}"' for v in values) + (',' if len(values) == 1 else '') + ')'
+
+    parts = [f'vars={names(vars)}']
+    if module_vars:
+        parts.append(f'module_vars={names(module_vars)}')
+    if checkpoint_interval is not None:
+        parts.append(f'checkpoint_interval={checkpoint_interval!r}')
+    if replay is not None:
+        parts.append(f'replay="{replay}"')
+    parts.append(f'manifest="{manifest}"')
+    return ', '.join(parts)
+
+
+def _parse_call(text: str) -> cst.Call:
+    call = cst.parse_expression(text)
     assert isinstance(call, cst.Call)
     return call
 
 
-def _with_new_arguments(decorator: cst.Decorator, new: cst.Call) -> cst.Decorator:
+def checkpointed_call(
+    runtime: str,
+    vars: Sequence[str],
+    manifest: str,
+    *,
+    module_vars: Sequence[str] = (),
+    checkpoint_interval: float | None = None,
+    replay: str | None = None,
+) -> cst.Call:
+    """Builds ``<runtime>.checkpointed(vars=(...), [module_vars=(...),] ..., manifest="...")``.
+
+    Args:
+        runtime: The name rory_runtime is bound to in the module.
+        vars: Attribute paths below ``self``.
+        manifest: The ``sha256:...`` digest.
+        module_vars: Paths of module globals, if any.
+        checkpoint_interval: Seconds between checkpoints, if set.
+        replay: ``'paced'`` or ``'fast'``, if set.
+
+    Returns:
+        The call expression; its keywords in the order of the parameters above, the
+        digest last.
+    """
+    arguments = _arguments_source(
+        vars, manifest, module_vars=module_vars, checkpoint_interval=checkpoint_interval,
+        replay=replay,
+    )
+    return _parse_call(f'{runtime}.checkpointed({arguments})')
+
+
+def checkpoint_module_call(
+    runtime: str,
+    vars: Sequence[str],
+    manifest: str,
+    *,
+    checkpoint_interval: float | None = None,
+    replay: str | None = None,
+) -> cst.Call:
+    """Builds ``<runtime>.checkpoint_module(__name__, vars=(...), ..., manifest="...")``.
+
+    Args:
+        runtime: The name rory_runtime is bound to in the module.
+        vars: Paths of the module globals.
+        manifest: The ``sha256:...`` digest.
+        checkpoint_interval: Seconds between checkpoints, if set.
+        replay: ``'paced'`` or ``'fast'``, if set.
+
+    Returns:
+        The call expression.
+    """
+    arguments = _arguments_source(
+        vars, manifest, checkpoint_interval=checkpoint_interval, replay=replay
+    )
+    return _parse_call(f'{runtime}.checkpoint_module(__name__, {arguments})')
+
+
+def _with_new_arguments(old: cst.Call, new: cst.Call) -> cst.Call:
+    """Gives an existing RORY call the arguments of ``new``, keeping its spelling.
+
+    With the same arguments (positional ones by position, keywords by name) only the values
+    are swapped, so hand formatting of the call survives; otherwise the arguments are
+    replaced.
+    """
+
+    def keys(call: cst.Call) -> list[str]:
+        return [
+            arg.keyword.value if arg.keyword is not None else f'#{i}'
+            for i, arg in enumerate(call.args)
+        ]
+
+    values = dict(zip(keys(new), (arg.value for arg in new.args), strict=True))
+    old_keys = keys(old)
+    if sorted(old_keys) == sorted(values):
+        args = [
+            arg.with_changes(value=values[key])
+            for arg, key in zip(old.args, old_keys, strict=True)
+        ]
+        return old.with_changes(args=args)
+    # Other arguments: the new ones, laid out as RORY writes them.
+    return old.with_changes(args=new.args, whitespace_before_args=new.whitespace_before_args)
+
+
+def _with_new_decorator_arguments(decorator: cst.Decorator, new: cst.Call) -> cst.Decorator:
     """Gives an existing RORY decorator the arguments of ``new``, keeping its spelling."""
     old = decorator.decorator
     if not isinstance(old, cst.Call):
         return decorator.with_changes(decorator=new.with_changes(func=old))
-    values = {arg.keyword.value: arg.value for arg in new.args if arg.keyword is not None}
-    keywords = [arg.keyword.value if arg.keyword is not None else '' for arg in old.args]
-    if sorted(keywords) == sorted(values):
-        # Same keywords: swap the values only, so hand formatting of the call survives.
-        args = [
-            arg.with_changes(value=values[kw])
-            for arg, kw in zip(old.args, keywords, strict=True)
-        ]
-        return decorator.with_changes(decorator=old.with_changes(args=args))
-    return decorator.with_changes(decorator=old.with_changes(args=new.args))
+    return decorator.with_changes(decorator=_with_new_arguments(old, new))
 
 
 class CheckpointDecoratorTransformer(cst.CSTTransformer):
@@ -340,7 +324,7 @@ class CheckpointDecoratorTransformer(cst.CSTTransformer):
             if not m.matches(original, RORY_DECORATOR, metadata_resolver=self):
                 decorators.append(updated)
             elif not found:
-                decorators.append(_with_new_arguments(updated, call))
+                decorators.append(_with_new_decorator_arguments(updated, call))
                 found = True
         if not found:
             decorators.insert(0, cst.Decorator(decorator=call))
@@ -388,6 +372,60 @@ class EnsureRuntimeImportTransformer(cst.CSTTransformer):
         return updated_node.with_changes(body=body)
 
 
+def module_call_index(body: Sequence[cst.BaseStatement]) -> int:
+    """Returns where RORY's module call goes: after the leading imports and the runtime's.
+
+    ``import rory_runtime`` is either among the leading imports or added at their end
+    (``EnsureRuntimeImportTransformer``, run after this), so the call directly follows it.
+    """
+    index = import_insertion_index(body)
+    for position, statement in enumerate(body):
+        if m.matches(statement, DEFINITION):
+            break
+        if m.matches(statement, RUNTIME_IMPORT_STATEMENT):
+            return max(index, position + 1)
+    return index
+
+
+class CheckpointModuleTransformer(cst.CSTTransformer):
+    """Puts ``<runtime>.checkpoint_module(__name__, vars=..., manifest=...)`` at module level.
+
+    A module without the call gets it at ``module_call_index``, the line right after
+    ``import rory_runtime``; a module that has it (a line of its own at module level, found
+    by qualified name) gets its arguments replaced where it is, and any second copy dropped.
+
+    Args:
+        call: The call, spelled with the name rory_runtime is bound to in the module.
+    """
+
+    METADATA_DEPENDENCIES = (QualifiedNameProvider,)
+
+    def __init__(self, call: cst.Call) -> None:
+        super().__init__()
+        self.call = call
+        self.added = False
+
+    def leave_Module(self, original_node: cst.Module, updated_node: cst.Module) -> cst.Module:
+        body: list[cst.BaseStatement] = []
+        found = False
+        # No statement is transformed below the module, so original and updated align.
+        for original, updated in zip(original_node.body, updated_node.body, strict=True):
+            if not m.matches(original, RORY_MODULE_CALL_LINE, metadata_resolver=self):
+                body.append(updated)
+            elif not found:
+                assert isinstance(updated, cst.SimpleStatementLine)
+                (expr,) = updated.body
+                assert isinstance(expr, cst.Expr) and isinstance(expr.value, cst.Call)
+                new = expr.with_changes(value=_with_new_arguments(expr.value, self.call))
+                body.append(updated.with_changes(body=[new]))
+                found = True
+        if not found:
+            line = cst.SimpleStatementLine(body=[cst.Expr(value=self.call)])
+            body.insert(module_call_index(body), line)
+            self.added = True
+        return updated_node.with_changes(body=body)
+
+
 def parse_source(source: bytes, display: str) -> cst.Module:
     """Parses a module, turning a syntax error into a SourceError at its position.
 
@@ -422,46 +460,11 @@ def source_sha256(wrapper: MetadataWrapper) -> str:
     return hashlib.sha256(wrapper.visit(StripRoryTransformer()).bytes).hexdigest()
 
 
-def _lineage(classes: Mapping[str, ClassFacts], name: str) -> list[ClassFacts]:
-    """Returns a class and, transitively, its bases defined in the same module."""
-    seen: dict[str, ClassFacts] = {}
-    pending = [name]
-    while pending:
-        current = pending.pop()
-        if current in seen or current not in classes:
-            continue
-        seen[current] = classes[current]
-        for _text, names in classes[current].bases:
-            pending.extend(sorted(names))
-    return list(seen.values())
-
-
-def _check(
-    keyvars: KeyVars, spec: NodeSpec, classes: Mapping[str, ClassFacts], display: str
-) -> None:
-    """Raises the first problem with ``spec`` against the module's classes."""
-    facts = classes.get(spec.class_name)
-    if facts is None:
-        there = ', '.join(classes) or 'none'
-        raise keyvars.error(
-            spec, 'class',
-            f'class {spec.class_name!r} not found in {spec.file}; classes there: {there}',
-        )
-    lineage = _lineage(classes, spec.class_name)
-    if not any(names & NODE_BASES for c in lineage for _text, names in c.bases):
-        bases = ', '.join(text for text, _names in facts.bases) or 'none'
-        raise SourceError(
-            display, facts.line, facts.col,
-            f'class {spec.class_name!r} does not derive from {NODE_BASE} (bases: {bases})',
-        )
-    assigned = frozenset().union(*(c.assigned for c in lineage))
-    missing = [v for v in spec.vars if v not in assigned]
-    if missing:
-        raise SourceError(
-            display, facts.line, facts.col,
-            f'{spec.class_name} never assigns {", ".join("self." + v for v in missing)} '
-            f'(vars: {", ".join(spec.vars)})',
-        )
+def _digest(spec: NodeSpec, file: str, digest: str) -> str:
+    return manifest_digest(
+        file=file, class_name=spec.class_name, vars=spec.vars, source_sha256=digest,
+        module_vars=spec.module_vars,
+    )
 
 
 def instrument_source(
@@ -471,8 +474,9 @@ def instrument_source(
     *,
     display: str | None = None,
     specs: Sequence[NodeSpec] | None = None,
+    resolve: BaseResolver | None = None,
 ) -> InstrumentedModule:
-    """Instruments the classes that keyvars.yaml lists for one file.
+    """Instruments the nodes that keyvars.yaml lists for one file.
 
     Args:
         source: The file's content.
@@ -481,15 +485,17 @@ def instrument_source(
         display: How to name the file in messages; defaults to ``file``.
         specs: The entries to apply; defaults to those of ``keyvars`` whose ``file`` is
             ``file`` (the tree step passes them itself once it has resolved paths).
+        resolve: Finds base classes in other files of SRC (the tree step passes it); None
+            to look for them in this file only.
 
     Returns:
-        The new source and what was decorated. With no entries for ``file`` the source is
-        returned unchanged.
+        The new source and what was instrumented. With no entries for ``file`` the source
+        is returned unchanged.
 
     Raises:
-        SourceError: The file is not valid Python, or a listed class is not a Node or
-            does not assign one of its vars.
-        ConfigError: A listed class is not in the file.
+        SourceError: The file is not valid Python, or a check of ``rory_instrument.checks``
+            fails in the source.
+        ConfigError: A listed class or module variable is not in the file.
     """
     raw = source.encode('utf-8') if isinstance(source, str) else source
     if specs is None:
@@ -499,25 +505,37 @@ def instrument_source(
         return InstrumentedModule(raw, ())
     module = parse_source(raw, shown)
     wrapper = MetadataWrapper(module)
-    collector = ClassCollector(wrapper.module)
-    wrapper.visit(collector)
+    checker = SpecChecker(keyvars, collect_module(wrapper, file, shown), resolve)
     for spec in specs:
-        _check(keyvars, spec, collector.classes, shown)
+        checker.check(spec)
 
     digest = source_sha256(wrapper)
     binding = runtime_binding(wrapper.module)
     runtime = binding or RUNTIME_MODULE
     done: list[InstrumentedClass] = []
     calls: dict[str, cst.Call] = {}
+    module_call: cst.Call | None = None
     for spec in specs:
-        manifest = manifest_digest(
-            file=file, class_name=spec.class_name, vars=spec.vars, source_sha256=digest
-        )
+        manifest = _digest(spec, file, digest)
         done.append(InstrumentedClass(spec, digest, manifest))
-        calls[spec.class_name] = checkpointed_call(runtime, spec.vars, manifest)
+        interval, replay = spec.checkpoint_interval, spec.replay
+        if spec.class_name is None:
+            module_call = checkpoint_module_call(
+                runtime, spec.module_vars, manifest, checkpoint_interval=interval, replay=replay
+            )
+        else:
+            calls[spec.class_name] = checkpointed_call(
+                runtime, spec.vars, manifest, module_vars=spec.module_vars,
+                checkpoint_interval=interval, replay=replay,
+            )
 
+    added = False
+    if module_call is not None:
+        place = CheckpointModuleTransformer(module_call)
+        wrapper = MetadataWrapper(wrapper.visit(place))
+        added = place.added
     decorate = CheckpointDecoratorTransformer(calls)
     result = wrapper.visit(decorate)
-    if decorate.added and binding is None:
+    if (decorate.added or added) and binding is None:
         result = result.visit(EnsureRuntimeImportTransformer())
     return InstrumentedModule(result.bytes, tuple(done))

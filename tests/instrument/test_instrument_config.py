@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_instrument.cli import main
+from rory_instrument.cli import base_candidates, main
 from rory_instrument.config import Mark, load_keyvars, parse_keyvars
 from rory_instrument.errors import ConfigError
 
@@ -96,7 +96,7 @@ CONFIG_ERRORS = [
      'keyvars.yaml:1:8: nodes: expected a non-empty list of node entries'),
     ('node_not_mapping', 'nodes:\n  - integrator.py\n',
      'keyvars.yaml:2:5: nodes[0]: expected a mapping with keys file, class, vars, '
-     'checkpoint_interval, replay'),
+     'module_vars, checkpoint_interval, replay'),
     ('missing_file', 'nodes:\n  - class: Integrator\n    vars: [total]\n',
      "keyvars.yaml:2:5: nodes[0]: missing required key 'file'"),
     ('missing_class', 'nodes:\n  - file: integrator.py\n    vars: [total]\n',
@@ -116,7 +116,7 @@ CONFIG_ERRORS = [
      "keyvars.yaml:4:26: nodes[0].vars[2]: duplicate var 'total'"),
     ('unknown_node_key', NODE + '    var: [total]\n',
      "keyvars.yaml:4:5: nodes[0]: unknown key 'var' (expected: file, class, vars, "
-     "checkpoint_interval, replay)"),
+     "module_vars, checkpoint_interval, replay)"),
     ('duplicate_key', NODE + '    vars: [total]\n    class: Other\n',
      "keyvars.yaml:5:5: nodes[0]: duplicate key 'class'"),
     ('duplicate_entry', NODE + '    vars: [total]\n'
@@ -139,6 +139,58 @@ CONFIG_ERRORS = [
      "seconds, got '.inf'"),
     ('replay_unknown', NODE + '    vars: [total]\n    replay: slow\n',
      "keyvars.yaml:5:13: nodes[0].replay: expected 'paced' or 'fast', got 'slow'"),
+    # Attribute paths, module vars and the combinations of class, vars and module_vars.
+    ('file_only', 'nodes:\n  - file: integrator.py\n',
+     "keyvars.yaml:2:5: nodes[0]: expected 'class' and 'vars' (a Node subclass and its "
+     "attributes), 'module_vars' (module globals), or both"),
+    ('vars_without_class', 'nodes:\n  - file: integrator.py\n    vars: [total]\n'
+     '    module_vars: [counter]\n',
+     "keyvars.yaml:2:5: nodes[0]: missing required key 'class'"),
+    ('path_not_identifiers', NODE + '    vars: [total, ekf.2P]\n',
+     "keyvars.yaml:4:19: nodes[0].vars[1]: 'ekf.2P' is not an attribute path (Python "
+     'identifiers separated by dots, e.g. ekf.P)'),
+    ('path_empty_segment', NODE + '    vars: [ekf.]\n',
+     "keyvars.yaml:4:12: nodes[0].vars[0]: 'ekf.' is not an attribute path (Python "
+     'identifiers separated by dots, e.g. ekf.P)'),
+    ('path_keyword', NODE + '    vars: [pid.lambda]\n',
+     "keyvars.yaml:4:12: nodes[0].vars[0]: 'pid.lambda' is not an attribute path (Python "
+     'identifiers separated by dots, e.g. ekf.P)'),
+    ('path_inside_listed', NODE + '    vars: [ekf, total, ekf.P]\n',
+     "keyvars.yaml:4:24: nodes[0].vars[2]: 'ekf.P' overlaps 'ekf' (vars[0]); list either the "
+     'whole object or parts of it'),
+    ('path_around_listed', NODE + '    vars: [ekf.P, ekf]\n',
+     "keyvars.yaml:4:19: nodes[0].vars[1]: 'ekf' overlaps 'ekf.P' (vars[0]); list either the "
+     'whole object or parts of it'),
+    ('module_vars_empty', NODE + '    module_vars: []\n',
+     'keyvars.yaml:4:18: nodes[0].module_vars: expected a non-empty list of attribute names'),
+    ('module_vars_not_list', 'nodes:\n  - file: integrator.py\n    module_vars: counter\n',
+     'keyvars.yaml:3:18: nodes[0].module_vars: expected a non-empty list of attribute names'),
+    ('module_var_not_identifier', 'nodes:\n  - file: a.py\n    module_vars: [counter, a-b]\n',
+     "keyvars.yaml:3:28: nodes[0].module_vars[1]: 'a-b' is not a Python identifier"),
+    ('module_var_duplicate', 'nodes:\n  - file: a.py\n    module_vars: [n, state.x, n]\n',
+     "keyvars.yaml:3:31: nodes[0].module_vars[2]: duplicate var 'n'"),
+    ('module_var_overlap', 'nodes:\n  - file: a.py\n    module_vars: [state.x, state]\n',
+     "keyvars.yaml:3:28: nodes[0].module_vars[1]: 'state' overlaps 'state.x' "
+     '(module_vars[0]); list either the whole object or parts of it'),
+    ('duplicate_module_entry', 'nodes:\n  - file: a.py\n    module_vars: [n]\n'
+     '  - file: ./a.py\n    module_vars: [m]\n',
+     'keyvars.yaml:4:5: nodes[1]: duplicate module_vars entry for a.py (first at line 2)'),
+    # Plain scalars are typed as YAML 1.2 (as editors and the schema see them).
+    ('var_boolean', NODE + '    vars: [total, true]\n',
+     'keyvars.yaml:4:19: nodes[0].vars[1]: expected an attribute name, got the boolean true '
+     '(quote it if it is meant as a name)'),
+    ('var_null', NODE + '    vars: [~]\n',
+     'keyvars.yaml:4:12: nodes[0].vars[0]: expected an attribute name, got null (quote it if '
+     'it is meant as a name)'),
+    ('file_number', 'nodes:\n  - file: 123\n    class: I\n    vars: [total]\n',
+     'keyvars.yaml:2:11: nodes[0].file: expected a path relative to SRC, got the number 123 '
+     '(quote it if it is meant as a name)'),
+    ('interval_underscore', NODE + '    vars: [total]\n    checkpoint_interval: 1_000\n',
+     "keyvars.yaml:5:26: nodes[0].checkpoint_interval: expected a positive number of "
+     "seconds, got '1_000'"),
+    ('interval_boolean', NODE + '    vars: [total]\n    checkpoint_interval: true\n',
+     "keyvars.yaml:5:26: nodes[0].checkpoint_interval: expected a positive number of "
+     "seconds, got 'true'"),
 ]
 
 
@@ -323,8 +375,13 @@ def test_interval_and_replay_are_not_hashed(work: Path,
     assert run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'a')[0] == 0
     (work / 'keyvars.yaml').write_text(GOOD + '    replay: fast\n    checkpoint_interval: 1\n')
     assert run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'b')[0] == 0
-    first, second = (work / d / 'integrator.py' for d in ('a', 'b'))
-    assert first.read_bytes() == second.read_bytes()
+    first, second = (json.loads((work / d / 'rory_manifest.json').read_text())['nodes'][0]
+                     for d in ('a', 'b'))
+    assert first['manifest'] == second['manifest']
+    # The settings go into the decorator, next to the same digest.
+    a, b = ((work / d / 'integrator.py').read_text() for d in ('a', 'b'))
+    assert b == a.replace(' manifest=', ' checkpoint_interval=1.0, replay="fast", manifest=')
+    assert a != b
 
 
 def test_node_spec_keeps_positions() -> None:
@@ -344,6 +401,208 @@ def test_node_spec_keeps_positions() -> None:
     assert spec.mark('replay') == Mark(2, 5)  # absent: falls back to the node
     assert spec.field_path('vars') == 'nodes[0].vars'
     assert str(keyvars.error(spec, 'vars[1]', 'x')) == 'k.yaml:4:16: x'
+
+
+def test_new_fields_and_their_positions() -> None:
+    keyvars = parse_keyvars(
+        'nodes:\n'
+        '  - file: counter.py\n'
+        '    module_vars: [counter, state.pose]\n'
+        '    checkpoint_interval: 0x10\n'
+        '    replay: fast\n'
+        '  - file: counter.py\n'
+        '    class: Outer.Inner\n'
+        "    vars: [ekf.P, 'true', pid.accu_e]\n"
+        '    module_vars: [counter]\n',
+        'k.yaml',
+    )
+    module, both = keyvars.nodes
+    assert (module.class_name, module.vars, module.module_vars) == (
+        None, (), ('counter', 'state.pose')
+    )
+    assert (module.checkpoint_interval, module.replay) == (16.0, 'fast')
+    assert module.label == 'counter.py'
+    assert module.mark('module_vars[1]') == Mark(3, 28)
+    assert (both.class_name, both.vars, both.module_vars) == (
+        'Outer.Inner', ('ekf.P', 'true', 'pid.accu_e'), ('counter',)
+    )
+    assert both.label == 'counter.py:Outer.Inner'
+
+
+def test_class_without_vars_needs_module_vars() -> None:
+    spec, = parse_keyvars(
+        'nodes:\n  - file: a.py\n    class: A\n    module_vars: [n]\n', 'k.yaml'
+    ).nodes
+    assert (spec.class_name, spec.vars, spec.module_vars) == ('A', (), ('n',))
+
+
+@pytest.mark.parametrize(
+    ('text', 'value'),
+    [('2', 2.0), ('0.5', 0.5), ('1e-3', 0.001), ('+.5', 0.5), ('0o10', 8.0), ('1.', 1.0)],
+)
+def test_interval_numbers(text: str, value: float) -> None:
+    keyvars = parse_keyvars(GOOD + f'    checkpoint_interval: {text}\n', 'k.yaml')
+    assert keyvars.nodes[0].checkpoint_interval == value
+
+
+def test_module_var_not_found_through_the_command(work: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'src' / 'counter.py').write_text('import rclpy\n\ncounter = 0\n')
+    fails_with(
+        work, capsys, 'nodes:\n  - file: counter.py\n    module_vars: [counter, histroy]\n',
+        "keyvars.yaml:3:28: module variable 'histroy' not found in counter.py: it is never "
+        "assigned at module level or after 'global histroy' in a function (globals there: "
+        'counter)',
+    )
+
+
+def test_not_state_through_the_command(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'src' / 'integrator.py').write_text(
+        INTEGRATOR + "        self.pub = self.create_publisher(Int64, 'sum', 10)\n"
+    )
+    fails_with(
+        work, capsys, GOOD.replace('history]', 'history, pub]'),
+        'src/integrator.py:14:9: Integrator.pub holds a Publisher (self.create_publisher(...)), '
+        'which is not state; list the data it publishes instead',
+    )
+
+
+def test_module_entry_through_the_command(work: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'src' / 'counter.py').write_text(
+        'import rclpy\n\ncounter = 0\n\n\ndef main():\n    global history\n'
+        '    history = []\n'
+    )
+    (work / 'src' / 'integrator.py').write_text(INTEGRATOR + '\n\ncounter = 0\n')
+    (work / 'keyvars.yaml').write_text(
+        GOOD + '    module_vars: [counter]\n'
+        '  - file: counter.py\n    module_vars: [counter, history]\n    replay: fast\n'
+    )
+    code, out, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'out')
+    assert (code, err) == (0, '')
+    assert out.splitlines() == [
+        'instrumented integrator.py:Integrator vars=total,count,history module_vars=counter',
+        'instrumented counter.py module_vars=counter,history',
+    ]
+    document = json.loads((work / 'out' / 'rory_manifest.json').read_text())
+    module, integrator = document['nodes']  # sorted by file
+    assert set(module) == {'file', 'vars', 'module_vars', 'source_sha256', 'manifest', 'replay'}
+    assert (module['file'], module['vars'], module['module_vars'], module['replay']) == (
+        'counter.py', [], ['counter', 'history'], 'fast'
+    )
+    assert integrator['module_vars'] == ['counter']
+    text = (work / 'out' / 'counter.py').read_text()
+    assert text == (
+        'import rclpy\nimport rory_runtime\nrory_runtime.checkpoint_module(__name__, '
+        f'vars=("counter", "history"), replay="fast", manifest="{module["manifest"]}")\n'
+        '\ncounter = 0\n\n\ndef main():\n    global history\n    history = []\n'
+    )
+    assert 'module_vars=("counter",), manifest=' in (work / 'out' / 'integrator.py').read_text()
+
+
+BASE = """\
+import threading
+
+from rclpy.node import Node
+
+
+class BaseNode(Node):
+    def __init__(self, name):
+        super().__init__(name)
+        self.count = 0
+        self.lock = threading.Lock()
+"""
+
+CHILD = """\
+from my_pkg.base import BaseNode
+from .base import BaseNode as Relative
+
+
+class Child(BaseNode):
+    def __init__(self):
+        super().__init__('child')
+        self.total = 0
+
+
+class Bare(Relative):
+    pass
+"""
+
+
+@pytest.fixture
+def package(work: Path) -> Path:
+    """src/my_pkg/my_pkg/{base,child}.py: a ROS package whose node derives from another file."""
+    root = work / 'src' / 'my_pkg' / 'my_pkg'
+    root.mkdir(parents=True)
+    (root / '__init__.py').write_text('')
+    (root / 'base.py').write_text(BASE)
+    (root / 'child.py').write_text(CHILD)
+    return work
+
+
+def child_entry(class_name: str, vars: str) -> str:
+    return f'nodes:\n  - file: my_pkg/my_pkg/child.py\n    class: {class_name}\n    vars: {vars}\n'
+
+
+def test_base_class_in_another_file(package: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (package / 'keyvars.yaml').write_text(
+        child_entry('Child', '[total, count]')
+        + '  - file: my_pkg/my_pkg/child.py\n    class: Bare\n    vars: [count]\n'
+    )
+    code, out, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'out')
+    assert (code, err) == (0, '')
+    assert out.splitlines() == [
+        'instrumented my_pkg/my_pkg/child.py:Child vars=total,count',
+        'instrumented my_pkg/my_pkg/child.py:Bare vars=count',
+    ]
+    # The base's file is copied as it is.
+    assert (package / 'out/my_pkg/my_pkg/base.py').read_text() == BASE
+
+
+@pytest.mark.parametrize(
+    ('class_name', 'vars', 'message'),
+    [
+        ('Child', '[total, missing]',
+         'src/my_pkg/my_pkg/child.py:5:1: Child never assigns self.missing '
+         '(vars: total, missing)'),
+        # Refused where the base's file shows it.
+        ('Bare', '[lock]',
+         'src/my_pkg/my_pkg/base.py:10:9: Bare.lock holds a Lock (threading.Lock()), which is '
+         'not state; list the data it guards instead'),
+    ],
+)
+def test_base_class_in_another_file_errors(package: Path, capsys: pytest.CaptureFixture[str],
+                                           class_name: str, vars: str, message: str) -> None:
+    fails_with(package, capsys, child_entry(class_name, vars), message)
+
+
+def test_base_class_file_not_in_src(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'src' / 'child.py').write_text(CHILD.replace('\nfrom .base import BaseNode as '
+                                                         'Relative\n', '\n'))
+    fails_with(work, capsys, 'nodes:\n  - file: child.py\n    class: Child\n    vars: [total]\n',
+               "src/child.py:4:1: class 'Child' does not derive from rclpy.node.Node "
+               '(bases: BaseNode)')
+
+
+def test_base_candidates() -> None:
+    assert list(base_candidates('pkg/sub/node.py', '.base.BaseNode')) == [
+        ('pkg/sub/base.py', 'BaseNode'), ('pkg/sub/base/__init__.py', 'BaseNode'),
+    ]
+    # Longest module path first; `..` is the parent package.
+    assert list(base_candidates('pkg/sub/node.py', '..common.base.Outer.Inner')) == [
+        ('pkg/common/base/Outer.py', 'Inner'), ('pkg/common/base/Outer/__init__.py', 'Inner'),
+        ('pkg/common/base.py', 'Outer.Inner'), ('pkg/common/base/__init__.py', 'Outer.Inner'),
+        ('pkg/common.py', 'base.Outer.Inner'), ('pkg/common/__init__.py', 'base.Outer.Inner'),
+    ]
+    # Absolute: from the file's folder, then each folder above it.
+    assert list(base_candidates('pkg/node.py', 'pkg.base.B')) == [
+        ('pkg/pkg/base.py', 'B'), ('pkg/pkg/base/__init__.py', 'B'),
+        ('pkg/pkg.py', 'base.B'), ('pkg/pkg/__init__.py', 'base.B'),
+        ('pkg/base.py', 'B'), ('pkg/base/__init__.py', 'B'),
+        ('pkg.py', 'base.B'), ('pkg/__init__.py', 'base.B'),
+    ]
+    # Above SRC: nothing to look at.
+    assert list(base_candidates('node.py', '..base.B')) == []
 
 
 def test_load_keyvars_reads_file(tmp_path: Path) -> None:

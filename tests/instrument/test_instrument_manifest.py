@@ -54,3 +54,39 @@ def test_render_manifest_sorted_and_stable() -> None:
         ],
     }
     assert text.startswith('{\n  "format": 1,\n  "nodes": [\n    {\n      "class": "A",\n')
+
+
+def test_digest_with_module_vars() -> None:
+    both = (
+        '{"class":"A","file":"a.py","module_vars":["counter"],"source_sha256":"' + SHA + '",'
+        '"vars":["x"]}'
+    )
+    module = '{"file":"a.py","module_vars":["counter","state.pose"],"source_sha256":"' + SHA \
+        + '","vars":[]}'
+    assert manifest_digest(file='a.py', class_name='A', vars=('x',), source_sha256=SHA,
+                           module_vars=('counter',)) == (
+        'sha256:' + hashlib.sha256(both.encode()).hexdigest()
+    )
+    assert manifest_digest(file='a.py', class_name=None, vars=(), source_sha256=SHA,
+                           module_vars=('counter', 'state.pose')) == (
+        'sha256:' + hashlib.sha256(module.encode()).hexdigest()
+    )
+
+
+def test_module_vars_in_the_digest_and_the_file() -> None:
+    digests = {
+        manifest_digest(file='a.py', class_name=c, vars=v, source_sha256=SHA, module_vars=mv)
+        for c, v, mv in [('A', ('x',), ()), ('A', ('x',), ('n',)), ('A', ('x',), ('m',)),
+                         (None, (), ('n',)), (None, (), ('m',)), ('A', (), ('n',))]
+    }
+    assert len(digests) == 6
+    module = ManifestEntry('a.py', None, (), SHA, 'sha256:1', module_vars=('n', 'state.x'))
+    both = ManifestEntry('a.py', 'A', ('x',), SHA, 'sha256:2', 1.0, 'fast', ('n',))
+    document = json.loads(render_manifest([both, module]))
+    assert document['nodes'] == [
+        {'file': 'a.py', 'vars': [], 'module_vars': ['n', 'state.x'], 'source_sha256': SHA,
+         'manifest': 'sha256:1'},
+        {'file': 'a.py', 'class': 'A', 'vars': ['x'], 'module_vars': ['n'],
+         'source_sha256': SHA, 'manifest': 'sha256:2', 'checkpoint_interval': 1.0,
+         'replay': 'fast'},
+    ]

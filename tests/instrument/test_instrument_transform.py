@@ -593,6 +593,132 @@ CASES = [
                 self.count = 0
         ''',
     ),
+    Case(
+        # No __init__: the state is created by a callback and a lifecycle-style method.
+        'no_init',
+        '''
+        from rclpy.node import Node
+
+
+        class Counter(Node):
+            def on_configure(self, state):
+                self.count = 0
+
+            def on_msg(self, msg):
+                self.last = msg
+        ''',
+        '''
+        from rclpy.node import Node
+        import rory_runtime
+
+
+        @rory_runtime.checkpointed(vars=("count", "last"), manifest="<Counter>")
+        class Counter(Node):
+            def on_configure(self, state):
+                self.count = 0
+
+            def on_msg(self, msg):
+                self.last = msg
+        ''',
+        {'Counter': ('count', 'last')},
+    ),
+    Case(
+        # No body of its own at all: everything comes from the base's __init__.
+        'no_init_inherited',
+        '''
+        from rclpy.node import Node
+
+
+        class Base(Node):
+            def __init__(self):
+                super().__init__('base')
+                self.count = 0
+
+
+        class Child(Base):
+            pass
+        ''',
+        '''
+        from rclpy.node import Node
+        import rory_runtime
+
+
+        class Base(Node):
+            def __init__(self):
+                super().__init__('base')
+                self.count = 0
+
+
+        @rory_runtime.checkpointed(vars=("count",), manifest="<Child>")
+        class Child(Base):
+            pass
+        ''',
+        {'Child': ('count',)},
+    ),
+    Case(
+        # A var assigned only after an early return still counts.
+        'init_early_return',
+        '''
+        from rclpy.node import Node
+
+
+        class Counter(Node):
+            def __init__(self, dry_run=False):
+                super().__init__('counter')
+                self.count = 0
+                if dry_run:
+                    return
+                self.history = []
+        ''',
+        '''
+        from rclpy.node import Node
+        import rory_runtime
+
+
+        @rory_runtime.checkpointed(vars=("count", "history"), manifest="<Counter>")
+        class Counter(Node):
+            def __init__(self, dry_run=False):
+                super().__init__('counter')
+                self.count = 0
+                if dry_run:
+                    return
+                self.history = []
+        ''',
+        {'Counter': ('count', 'history')},
+    ),
+    Case(
+        # super().__init__ after the state, and inside a branch.
+        'super_init_not_first',
+        '''
+        import rclpy.node as rn
+
+
+        class Counter(rn.Node):
+            def __init__(self, name=None):
+                self.count = 0
+                self.total = 0.0
+                if name is None:
+                    super().__init__('counter')
+                else:
+                    super().__init__(name)
+        ''',
+        '''
+        import rclpy.node as rn
+        import rory_runtime
+
+
+        @rory_runtime.checkpointed(vars=("count", "total"), manifest="<Counter>")
+        class Counter(rn.Node):
+            def __init__(self, name=None):
+                self.count = 0
+                self.total = 0.0
+                if name is None:
+                    super().__init__('counter')
+                else:
+                    super().__init__(name)
+        ''',
+        {'Counter': ('count', 'total')},
+    ),
 ]
 
 

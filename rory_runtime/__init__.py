@@ -1,8 +1,9 @@
 """rory_runtime: what an instrumented ROS 2 node links against, and the supervisor.
 
-``rory-instrument`` adds ``import rory_runtime`` and ``@rory_runtime.checkpointed(...)`` to a
-node's source. Unsupervised, the decorator returns the class untouched without importing the
-runtime, so the program behaves (and starts) exactly like the original.
+``rory-instrument`` adds ``import rory_runtime`` and ``@rory_runtime.checkpointed(...)`` (or, for
+a node written as functions, ``rory_runtime.checkpoint_module(...)``) to a node's source.
+Unsupervised, both do nothing and import nothing more, so the program behaves (and starts)
+exactly like the original.
 """
 
 from __future__ import annotations
@@ -18,10 +19,45 @@ __all__ = ['checkpoint_module', 'checkpointed']
 C = TypeVar('C', bound=type)
 
 
-def checkpointed(*, vars: tuple[str, ...], manifest: str) -> Callable[[C], C]:
+def checkpointed(
+    *,
+    vars: tuple[str, ...],
+    manifest: str,
+    module_vars: tuple[str, ...] = (),
+    checkpoint_interval: float | None = None,
+    replay: str | None = None,
+) -> Callable[[C], C]:
     """Mark a node class's key variables for checkpointing (see :mod:`rory_runtime.attach`)."""
     if not os.environ.get(ENV_NODE):
         return lambda cls: cls
     from .attach import checkpointed as attach_checkpointed
 
-    return attach_checkpointed(vars=vars, manifest=manifest)
+    return attach_checkpointed(
+        vars=vars,
+        manifest=manifest,
+        module_vars=module_vars,
+        checkpoint_interval=checkpoint_interval,
+        replay=replay,
+    )
+
+
+def checkpoint_module(
+    module: str,
+    *,
+    vars: tuple[str, ...],
+    manifest: str,
+    checkpoint_interval: float | None = None,
+    replay: str | None = None,
+) -> None:
+    """Mark a function-style node's module globals as its state (see :mod:`.attach`)."""
+    if not os.environ.get(ENV_NODE):
+        return
+    from .attach import checkpoint_module as attach_checkpoint_module
+
+    attach_checkpoint_module(
+        module,
+        vars=vars,
+        manifest=manifest,
+        checkpoint_interval=checkpoint_interval,
+        replay=replay,
+    )

@@ -61,8 +61,11 @@ def test_unsupervised_decorator_returns_the_class_without_loading_the_runtime() 
     code = (
         'import sys, rory_runtime\n'
         'class C: pass\n'
-        'D = rory_runtime.checkpointed(vars=("x",), manifest="sha256:0")(C)\n'
+        'D = rory_runtime.checkpointed(vars=("x",), module_vars=("y",), checkpoint_interval=1.0,'
+        ' replay="fast", manifest="sha256:0")(C)\n'
         'assert D is C\n'
+        'rory_runtime.checkpoint_module(__name__, vars=("y",), checkpoint_interval=1.0,'
+        ' replay="fast", manifest="sha256:0")\n'
         'assert "rory_runtime.attach" not in sys.modules, "runtime loaded unsupervised"\n'
     )
     env = {k: v for k, v in os.environ.items() if not k.startswith('RORY_')}

@@ -38,6 +38,22 @@ EXAMPLE = REPO / 'examples' / 'integrator'
 
 
 @dataclass(frozen=True)
+class Program:
+    """A node program to instrument and run: it consumes /numbers, publishes its state as JSON."""
+
+    source: Path  # folder rory-instrument copies
+    keyvars: Path
+    file: str  # the program, relative to the instrumented folder
+    state_topic: str
+    node: str = 'node'  # its id in the supervisor config
+
+
+INTEGRATOR = Program(
+    EXAMPLE, EXAMPLE / 'keyvars.yaml', 'integrator.py', '/integrator/state', 'integrator'
+)
+
+
+@dataclass(frozen=True)
 class Kill:
     """When to SIGKILL the node: exactly one of the fields is set."""
 
@@ -60,12 +76,17 @@ class ScenarioResult:
 
     method: str
     expected: int
-    history: list[int]
+    state: Any  # the node's last published state
     recoveries: list[dict[str, Any]]
     kills: list[tuple[str, float]]
     e_stop: list[tuple[float, bool]]
     events: list[dict[str, Any]] = field(repr=False)
     log: str = field(repr=False, default='')
+
+    @property
+    def history(self) -> list[int]:
+        """The integrator's list of the numbers it applied."""
+        return list(self.state.get('history', [])) if isinstance(self.state, dict) else []
 
     @property
     def correct(self) -> bool:
@@ -98,29 +119,40 @@ def scenario_env(domain_id: int) -> dict[str, str]:
     return env
 
 
-def prepare(workdir: Path, method: str, *, interval: float, pace: str) -> Path:
-    """Instrument the example into ``workdir`` and write a supervisor config; its path."""
+def prepare(
+    workdir: Path,
+    method: str,
+    *,
+    interval: float | None,
+    pace: str | None,
+    program: Program = INTEGRATOR,
+) -> Path:
+    """Instrument the program into ``workdir`` and write a supervisor config; its path.
+
+    ``interval`` and ``pace`` left None leave them to the program's keyvars.yaml.
+    """
     workdir.mkdir(parents=True, exist_ok=True)
     out = workdir / 'out'
     if not out.exists():
         subprocess.run(
             [
-                sys.executable, '-m', 'rory_instrument', str(EXAMPLE),
-                '--vars', str(EXAMPLE / 'keyvars.yaml'), '-o', str(out),
+                sys.executable, '-m', 'rory_instrument', str(program.source),
+                '--vars', str(program.keyvars), '-o', str(out),
             ],
             check=True,
             capture_output=True,
         )
+    node: dict[str, Any] = {
+        'name': program.node,
+        'command': ['python', f'out/{program.file}'],
+        'method': method,
+    }
+    if interval is not None:
+        node['checkpoint_interval'] = interval
+    if pace is not None:
+        node['replay'] = pace
     config = {
-        'nodes': [
-            {
-                'name': 'integrator',
-                'command': ['python', 'out/integrator.py'],
-                'method': method,
-                'checkpoint_interval': interval,
-                'replay': pace,
-            }
-        ],
+        'nodes': [node],
         'safe_state': [
             {
                 'topic': '/e_stop',
@@ -139,7 +171,7 @@ def prepare(workdir: Path, method: str, *, interval: float, pace: str) -> Path:
 class _Observer:
     """Subscribes to the node's state and the safe-state topic in its own rclpy context."""
 
-    def __init__(self, domain_id: int) -> None:
+    def __init__(self, domain_id: int, state_topic: str = INTEGRATOR.state_topic) -> None:
         self.context = Context()
         rclpy.init(
             context=self.context, domain_id=domain_id,
@@ -150,10 +182,12 @@ class _Observer:
             depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
             reliability=ReliabilityPolicy.RELIABLE,
         )
-        self.state: dict[str, Any] = {}
+        self.state: Any = {}
         self.state_changed = time.monotonic()
         self.e_stop: list[tuple[float, bool]] = []
-        self.node.create_subscription(String, '/integrator/state', self._on_state, latched)
+        # Volatile: matches latched and plain state publishers alike (a transient-local reader
+        # does not match a volatile writer); this observer starts before the node anyway.
+        self.node.create_subscription(String, state_topic, self._on_state, QoSProfile(depth=10))
         self.node.create_subscription(Bool, '/e_stop', self._on_e_stop, latched)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -227,20 +261,21 @@ def run(
     domain_id: int,
     count: int = 300,
     rate: float = 50.0,
-    interval: float = 2.0,
-    pace: str = 'paced',
+    interval: float | None = 2.0,
+    pace: str | None = 'paced',
     timeout: float = 90.0,
+    program: Program = INTEGRATOR,
 ) -> ScenarioResult:
     """Run the scenario once; always reaps every process it started."""
     workdir = workdir.resolve()
-    config = prepare(workdir, method, interval=interval, pace=pace)
+    config = prepare(workdir, method, interval=interval, pace=pace, program=program)
     store = workdir / f'store-{method}'
     if store.exists():
         shutil.rmtree(store)
     env = scenario_env(domain_id)
     # This process joins the run too (the observer): same discovery settings as the others.
     os.environ.update({k: v for k, v in env.items() if k.startswith(('FAST', 'ROS_'))})
-    observer = _Observer(domain_id)
+    observer = _Observer(domain_id, program.state_topic)
     events = _Events(store / 'events.jsonl')
     tracker = _Tracker()
     kills_done: list[tuple[str, float]] = []
@@ -264,13 +299,14 @@ def run(
                 [*publisher, min_subs], env, workdir, workdir / f'publisher-{method}.log'
             ) as pub:
                 started: float | None = None
+                before = observer.state
                 while True:
                     now = time.monotonic()
                     if now > deadline:
                         raise RuntimeError(f'scenario timed out:\n{sup_log.read_text()[-4000:]}')
                     tracker.feed(events.poll())
-                    if started is None and observer.state.get('count', 0) > 0:
-                        started = now
+                    if started is None and observer.state != before:
+                        started = now  # the first number has been applied
                     if pending and started is not None and tracker.pid is not None:
                         kill = pending[0]
                         if tracker.due(kill, started, now):
@@ -282,8 +318,11 @@ def run(
                     # Settled: no news from the node for a while since it last became RUNNING
                     # (a recovered node publishes its state on its 1 Hz timer).
                     settled = now - max(observer.state_changed, tracker.running_since) > 2.5
+                    complete = isinstance(observer.state, dict) and (
+                        observer.state.get('count') == count
+                    )
                     if published and not pending and tracker.state == 'RUNNING' and (
-                        observer.state.get('count') == count or settled
+                        complete or settled
                     ):
                         break
                     time.sleep(0.005)
@@ -293,7 +332,7 @@ def run(
     return ScenarioResult(
         method=method,
         expected=count,
-        history=list(observer.state.get('history', [])),
+        state=observer.state,
         recoveries=[e for e in events.events if e['kind'] == 'recovered'],
         kills=kills_done,
         e_stop=observer.e_stop,

@@ -583,14 +583,14 @@ class SegmentStore:
             raise LogError(self.dir, f'cannot create: {err.strerror or err}') from None
         return SegmentWriter(self.path(n), typestore)
 
-    def read_after(self, cut: int | None) -> Iterator[LogEntry]:
-        """Yield the entries of segments numbered above cut (all if None).
+    def read_after(self, cut: int | None, before: int | None = None) -> Iterator[LogEntry]:
+        """Yield the entries of segments numbered above cut (all if None) and below ``before``.
 
         Segments come in number order, entries in file order. A segment directory that is
         still empty (its writer was killed right after creating it) holds no messages.
         """
         for n in self.numbers():
-            if cut is not None and n <= cut:
+            if (cut is not None and n <= cut) or (before is not None and n >= before):
                 continue
             path = self.path(n)
             if not any(path.iterdir()):

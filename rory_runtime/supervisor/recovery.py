@@ -36,7 +36,7 @@ from typing import Any
 from rclpy.publisher import Publisher
 
 from ..errors import LogError
-from ..log import LogEntry, SegmentStore, SegmentWriter, read_segment
+from ..log import LogEntry, SegmentStore, SegmentWriter
 from ..protocol import (
     FLAG_RELAY,
     MessageId,
@@ -336,21 +336,15 @@ class Recovery:
         """S3: stream the log after ``cut`` and then R on the shadow topic."""
         assert self.rlog is not None
         self.timings.synced = time.monotonic()
-        rlog_number = self.rlog.number
-        numbers = [
-            n for n in self.segments.numbers() if (cut is None or n > cut) and n < rlog_number
-        ]
-
-        def backlog() -> Iterator[LogEntry]:
-            for n in numbers:
-                yield from read_segment(self.segments.path(n))
+        # Everything logged after the cut, up to R (which the streamer reads from memory).
+        backlog = self.segments.read_after(cut, before=self.rlog.number)
 
         def released(sent: int) -> None:
             self.timings.release_sent = time.monotonic()
             on_released(sent)
 
         self.streamer = ReplayStreamer(
-            publisher, incarnation, backlog(), self.rlog, pace, self.crashed_ns, released
+            publisher, incarnation, backlog, self.rlog, pace, self.crashed_ns, released
         )
         self.streamer.start()
 

@@ -567,3 +567,20 @@ def test_segment_store_read_after_reports_corruption(tmp_path: Path) -> None:
 def test_segment_store_bad_node_id(tmp_path: Path, node: str) -> None:
     with pytest.raises(ValueError, match='cannot be used as a directory name'):
         SegmentStore(tmp_path, node)
+
+
+def test_read_after_stops_before_a_bound_and_skips_a_segment_killed_before_its_file(
+    tmp_path: Path,
+) -> None:
+    # The recovery replays the segments after a checkpoint's cut up to its recovery log R;
+    # a node killed right after rotating leaves a segment directory with no file in it.
+    store = SegmentStore(tmp_path, 'n')
+    first, third, fourth = sample_entries(2), sample_entries(3), sample_entries(1)
+    for number, entries in ((1, first), (3, third), (4, fourth)):
+        writer = store.open(number)
+        for e in entries:
+            writer.write(e.topic, e.msgtype, e.recv_ns, e.source_ns, e.seq, e.data)
+        writer.close()
+    store.path(2).mkdir(mode=0o700)  # killed before the MCAP file existed
+    assert list(store.read_after(None, before=4)) == [*first, *third]
+    assert list(store.read_after(1, before=4)) == third

@@ -34,6 +34,7 @@ import atexit
 import contextlib
 import functools
 import inspect
+import json
 import logging
 import os
 import queue
@@ -56,6 +57,7 @@ from std_msgs.msg import String, UInt8MultiArray
 
 from . import codec, protocol
 from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
+from .inflight import InFlightSlot, slot_path
 from .log import SegmentStore, SegmentWriter, default_typestore
 from .msgtypes import type_name_of
 from .protocol import (
@@ -64,6 +66,7 @@ from .protocol import (
     ENV_METHOD,
     ENV_MODE,
     ENV_NODE,
+    ENV_QUARANTINE,
     ENV_STORE,
     FLAG_RELAY,
     InputSpec,
@@ -100,6 +103,7 @@ class RuntimeEnv:
     method: Method
     mode: Mode
     interval: float | None  # None: the supervisor config left it to the node's keyvars
+    quarantined: frozenset[tuple[str, MessageId]] = frozenset()
 
     @classmethod
     def from_environ(cls, environ: dict[str, str] | None = None) -> RuntimeEnv | None:
@@ -120,8 +124,12 @@ class RuntimeEnv:
                 method=Method(env[ENV_METHOD]),
                 mode=Mode(env[ENV_MODE]),
                 interval=float(env[ENV_INTERVAL]) if env.get(ENV_INTERVAL) else None,
+                quarantined=frozenset(
+                    (str(topic), (int(source_ns), int(seq)))
+                    for topic, source_ns, seq in json.loads(env.get(ENV_QUARANTINE) or '[]')
+                ),
             )
-        except (KeyError, ValueError) as err:
+        except (KeyError, ValueError, TypeError) as err:
             raise RoryError(f'{ENV_NODE} is set but the environment is bad: {err}') from None
 
 
@@ -411,7 +419,9 @@ class NodeRuntime:
         self.orphans: dict[str, list[protocol.Msg]] = {}
         self.held_timers: list[Timer] = []
         self.publishers: list[Publisher] = []
-        self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0}
+        self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0, 'quarantined': 0}
+        # What the node is applying right now, readable after a crash (poison detection).
+        self.inflight = InFlightSlot(slot_path(env.store, env.node_id), env.incarnation)
         self.checkpoints = CheckpointStore(env.store, env.node_id)
         self.segments = SegmentStore(env.store, env.node_id)
         self.writer: SegmentWriter | None = None
@@ -613,6 +623,14 @@ class NodeRuntime:
         else:
             self._release(envelope.next_segment)
 
+    def _is_quarantined(self, topic: str, ident: MessageId) -> bool:
+        # A poison message the supervisor set aside: never applied again, by replay or by a
+        # transient-local publisher re-sending it.
+        if (topic, ident) in self.env.quarantined:
+            self.stats['quarantined'] += 1
+            return True
+        return False
+
     def _from_shadow(self, msg: protocol.Msg) -> None:
         inp = self.inputs.get(msg.topic)
         if inp is None:
@@ -624,7 +642,9 @@ class NodeRuntime:
         relayed = bool(msg.flags & FLAG_RELAY)
         if relayed:
             self._note_relayed(msg.topic, msg.ident)
-        if msg.ident in self.windows[msg.topic]:
+        if self._is_quarantined(msg.topic, msg.ident):
+            pass
+        elif msg.ident in self.windows[msg.topic]:
             self.stats['duplicates'] += 1
         else:
             info = {
@@ -661,6 +681,8 @@ class NodeRuntime:
             # e.g. a transient-local publisher re-sending what the checkpoint already holds
             self.stats['duplicates'] += 1
             return
+        if self._is_quarantined(inp.topic, ident):
+            return
         self._apply(inp, raw, info, ident, log=True)
 
     def _apply(
@@ -670,10 +692,12 @@ class NodeRuntime:
         with self.lock:
             if log and self.method.logs:
                 self._log(inp, raw, info, ident)
+            self.inflight.busy(inp.topic, ident, int(info['received_timestamp']))
             if inp.with_info:
                 inp.callback(msg, info)
             else:
                 inp.callback(msg)
+            self.inflight.idle()
             self.windows[inp.topic].add(ident)
             self.stats['applied'] += 1
 
@@ -725,7 +749,7 @@ class NodeRuntime:
         for _, inp, ident, raw, info in backlog:
             if ident in self.windows[inp.topic]:
                 self.stats['duplicates'] += 1
-            else:
+            elif not self._is_quarantined(inp.topic, ident):
                 self._apply(inp, raw, info, ident, log=True)
 
     def _note_relayed(self, topic: str, ident: MessageId) -> None:

@@ -53,6 +53,7 @@ ENV_INCARNATION: Final = 'RORY_INCARNATION'
 ENV_METHOD: Final = 'RORY_METHOD'
 ENV_MODE: Final = 'RORY_MODE'
 ENV_INTERVAL: Final = 'RORY_CHECKPOINT_INTERVAL'
+ENV_QUARANTINE: Final = 'RORY_QUARANTINE'  # JSON [[topic, source_ns, seq], ...] to skip
 
 NODE_ID_RE: Final = re.compile(r'[A-Za-z][A-Za-z0-9_]*')  # use fullmatch
 

@@ -40,6 +40,7 @@ from ..log import SegmentStore, default_typestore
 from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
 from .config import NodeConfig, SupervisorConfig
+from .poison import PoisonGuard
 from .process import Child, Launcher, PopenLauncher, RestartPolicy, describe_exit
 from .recovery import Recovery
 from .ring import Ring, RingContext
@@ -132,6 +133,7 @@ class ManagedNode:
         self.hello: dict[str, Any] | None = None
         self.checkpoints = CheckpointStore(sup.config.store, cfg.name)
         self.segments = SegmentStore(sup.config.store, cfg.name)
+        self.poison = PoisonGuard(sup.config.store, cfg.name, self.segments)
         self.replay_pub: Publisher = sup.ros_node.create_publisher(
             UInt8MultiArray, protocol.replay_topic(cfg.name), protocol.REPLAY_QOS
         )
@@ -167,6 +169,7 @@ class ManagedNode:
                 protocol.ENV_INCARNATION: str(self.incarnation),
                 protocol.ENV_METHOD: self.cfg.method.value,
                 protocol.ENV_MODE: mode.value,
+                protocol.ENV_QUARANTINE: self.poison.env_value(),
                 'PYTHONUNBUFFERED': '1',
             }
         )
@@ -213,6 +216,7 @@ class ManagedNode:
         ran_for = 0.0 if self.running_since is None else ev.at - self.running_since
         self.running_since = None
         was_recovering = self.sm.recovering
+        self._judge_crash(ev)
         self.sm.change_state(NodeState.CRASHED, how)
         self._crashed(ev, was_recovering)
         delay = self.policy.on_crash(ran_for)
@@ -234,6 +238,23 @@ class ManagedNode:
             self.sm.change_state(NodeState.BACKOFF, f'restart in {delay:.1f} s')
         else:
             self._restart()
+
+    def _judge_crash(self, ev: ChildExited) -> None:
+        """Did it die applying a message - the same one as last time (poison)?"""
+        rlog = self.recovery.rlog if self.recovery is not None else None
+        recent = list(rlog.entries) if rlog is not None else []
+        suspect = self.poison.died_on(ev.incarnation)
+        quarantined = self.poison.on_crash(ev.incarnation, recent)
+        if quarantined is not None:
+            self.sup.events_log.write(
+                'quarantined', self.id, topic=quarantined.topic, source_ns=quarantined.ident[0],
+                seq=quarantined.ident[1], path=str(quarantined.path),
+            )
+        elif suspect is not None:
+            self.sup.events_log.write(
+                'died_on', self.id, topic=suspect.topic, source_ns=suspect.ident[0],
+                seq=suspect.ident[1], incarnation=ev.incarnation,
+            )
 
     def _crashed(self, ev: ChildExited, was_recovering: bool) -> None:
         rec = self.recovery

@@ -1,0 +1,97 @@
+"""Which message a node was applying when it died: the in-flight slot.
+
+The node's runtime writes the topic and identity of a message into a small memory-mapped file
+before calling the user's callback, and marks it idle after. A write to a shared mapping is a
+memory store, no system call, and it survives the process being killed (the page belongs to
+the file). After a crash the supervisor reads the slot: the message the node died applying is a
+suspect; dying on the same message twice makes it a poison message (see supervisor/poison.py).
+
+Layout (little endian, 256 bytes)::
+
+    magic 'RYIF' | version u8 | busy u8 | topic_len u16 | incarnation u32 | seq u32
+    source_ns i64 | recv_ns i64 | topic (utf-8, up to 224 bytes)
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+from .protocol import MessageId
+
+SLOT_SIZE = 256
+_HEAD = struct.Struct('<4sBBHIIqq')
+_MAGIC = b'RYIF'
+_VERSION = 1
+_TOPIC_MAX = SLOT_SIZE - _HEAD.size
+
+
+@dataclass(frozen=True)
+class InFlight:
+    """The message a node was applying."""
+
+    incarnation: int
+    topic: str
+    ident: MessageId
+    recv_ns: int
+
+
+def slot_path(store: Path, node_id: str) -> Path:
+    """Where a node's slot lives."""
+    return store / node_id / 'inflight'
+
+
+class InFlightSlot:
+    """The node's side: mark a message busy before its callback, idle after."""
+
+    def __init__(self, path: Path, incarnation: int) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            os.ftruncate(fd, SLOT_SIZE)
+            self._map = mmap.mmap(fd, SLOT_SIZE)
+        finally:
+            os.close(fd)
+        self._incarnation = incarnation
+        self._topic_cache: dict[str, bytes] = {}
+        self.idle()
+
+    def busy(self, topic: str, ident: MessageId, recv_ns: int) -> None:
+        """A callback is about to run on this message."""
+        name = self._topic_cache.get(topic)
+        if name is None:
+            name = topic.encode()[:_TOPIC_MAX]
+            self._topic_cache[topic] = name
+        self._map[_HEAD.size : _HEAD.size + len(name)] = name
+        self._map[: _HEAD.size] = _HEAD.pack(
+            _MAGIC, _VERSION, 1, len(name), self._incarnation, ident[1], ident[0], recv_ns
+        )
+
+    def idle(self) -> None:
+        """No callback is running on a message."""
+        self._map[:8] = _HEAD.pack(_MAGIC, _VERSION, 0, 0, 0, 0, 0, 0)[:8]
+
+    def close(self) -> None:
+        """Unmap."""
+        self._map.close()
+
+
+def read_slot(path: Path) -> InFlight | None:
+    """The message a dead node was applying, or None (idle, absent or unreadable)."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    if len(data) < SLOT_SIZE:
+        return None
+    magic, version, busy, topic_len, incarnation, seq, source_ns, recv_ns = _HEAD.unpack_from(data)
+    if magic != _MAGIC or version != _VERSION or busy != 1 or topic_len > _TOPIC_MAX:
+        return None
+    try:
+        topic = data[_HEAD.size : _HEAD.size + topic_len].decode()
+    except UnicodeDecodeError:
+        return None
+    return InFlight(incarnation, topic, (source_ns, seq), recv_ns)

@@ -1,0 +1,41 @@
+"""Faults during recovery: a poison message is found, quarantined and skipped."""
+
+from __future__ import annotations
+
+import base64
+import json
+from pathlib import Path
+
+import pytest
+from rclpy.serialization import deserialize_message
+from std_msgs.msg import Int64
+
+from rory_eval.scenario import Program, run
+
+pytestmark = pytest.mark.ros
+
+FAULTS = Path(__file__).parent / 'faults'
+
+
+def test_poison_message_is_quarantined_and_the_node_goes_on(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    program = Program(FAULTS, FAULTS / 'keyvars.yaml', 'poison.py', '/state', 'fragile')
+    result = run('rory', (), tmp_path, domain_id=ros_domain, count=150, program=program,
+                 timeout=120)
+    kinds = [e['kind'] for e in result.events]
+    exits = [e for e in result.events if e['kind'] == 'exit']
+    # 1: dies live on 77; 2: dies again when the replay reaches 77 -> quarantined; 3: goes on
+    assert len(exits) == 2, result.log[-3000:]
+    assert kinds.count('quarantined') == 1
+    quarantined = next(e for e in result.events if e['kind'] == 'quarantined')
+    record = json.loads(Path(quarantined['path']).read_text())
+    assert record['topic'] == '/numbers'
+    message = deserialize_message(base64.b64decode(record['cdr_base64']), Int64)
+    assert message.data == 77
+    # nothing else lost, nothing doubled, 77 skipped
+    assert result.state['history'] == [n for n in range(1, 151) if n != 77]
+    states = [e['new'] for e in result.events if e['kind'] == 'state']
+    # the node was running when the harness stopped it: never FATAL
+    assert states[-3:] == ['RUNNING', 'STOPPING', 'STOPPED'], states
+    assert 'FATAL' not in states

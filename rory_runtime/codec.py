@@ -30,6 +30,11 @@ Values round-trip exactly, type and value:
   12    ``rclpy.duration.Duration``  nanoseconds
   13    ``collections.deque``        ``[maxlen or nil, array of the items]``
   14    ``collections.OrderedDict``  map of the items, in order
+  15    ``numpy.random.Generator``   ``[bit generator name, its state dict]``; the bit
+                                     generator is one of numpy's own (PCG64, PCG64DXSM,
+                                     MT19937, Philox, SFC64), so a particle filter's random
+                                     stream continues exactly where it was
+  16    ``random.Random``            its ``getstate()`` tuple
   ====  ===========================  ==========================================================
 
 Enum and dataclass classes are named by module and qualname, so they may be nested in a
@@ -69,6 +74,7 @@ import dataclasses
 import enum
 import functools
 import math
+import random
 import re
 import sys
 import threading
@@ -97,6 +103,17 @@ EXT_TIME: Final = 11
 EXT_DURATION: Final = 12
 EXT_DEQUE: Final = 13
 EXT_ORDEREDDICT: Final = 14
+EXT_NPRANDOM: Final = 15
+EXT_PYRANDOM: Final = 16
+
+# numpy's own bit generators, by name: decoding instantiates only these.
+_BIT_GENERATORS: Final[dict[str, Callable[[], np.random.BitGenerator]]] = {
+    'PCG64': np.random.PCG64,
+    'PCG64DXSM': np.random.PCG64DXSM,
+    'MT19937': np.random.MT19937,
+    'Philox': np.random.Philox,
+    'SFC64': np.random.SFC64,
+}
 
 ROS_TYPE_RE: Final = re.compile(r'[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*')
 """Accepted ROS 2 message type names; checked before anything is imported."""
@@ -274,6 +291,10 @@ def _lower(value: object, path: _Path) -> object:
         return _ext(EXT_DEQUE, _pack([value.maxlen, _lower_items(value, path)]))
     if type(value) is collections.OrderedDict:
         return _ext(EXT_ORDEREDDICT, _pack(_lower_dict(value, path)))
+    if type(value) is np.random.Generator:
+        return _lower_nprandom(value, path)
+    if type(value) is random.Random:
+        return _ext(EXT_PYRANDOM, _pack(_lower(value.getstate(), path)))
     type_name = ros_type_name(kind)
     if type_name is not None:
         return _lower_rosmsg(value, type_name, path)
@@ -325,6 +346,14 @@ def _lower_dict(mapping: dict[object, object], path: _Path) -> dict[object, obje
         # Distinct Python keys that encode alike would silently merge on decode.
         raise _refuse(path, 'a dict two of whose keys have the same encoding')
     return out
+
+
+def _lower_nprandom(generator: np.random.Generator, path: _Path) -> msgpack.ExtType:
+    bit_generator = generator.bit_generator
+    name = type(bit_generator).__name__
+    if _BIT_GENERATORS.get(name) is not type(bit_generator):
+        raise _refuse(path, f'a numpy Generator over the bit generator {name}')
+    return _ext(EXT_NPRANDOM, _pack([name, _lower(bit_generator.state, path)]))
 
 
 def _lower_ndarray(array: np.ndarray[Any, np.dtype[Any]], path: _Path) -> msgpack.ExtType:
@@ -960,6 +989,32 @@ def _decode_ordereddict(data: bytes) -> object:
     return collections.OrderedDict(items)
 
 
+def _decode_nprandom(data: bytes) -> object:
+    name, state = _unpack_list(data, 'numpy Generator', 2)
+    factory = _BIT_GENERATORS.get(name) if type(name) is str else None
+    if factory is None or type(state) is not dict:
+        msg = 'malformed numpy Generator payload'
+        raise _Malformed(msg)
+    bit_generator = factory()
+    try:
+        bit_generator.state = state
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError, OverflowError) as err:
+        msg = f'malformed numpy Generator state: {type(err).__name__}: {err}'
+        raise _Malformed(msg) from None
+    return np.random.Generator(bit_generator)
+
+
+def _decode_pyrandom(data: bytes) -> object:
+    state = _unpack(data)
+    generator = random.Random()
+    try:
+        generator.setstate(state)  # type: ignore[arg-type]  # checked by setstate itself
+    except (TypeError, ValueError, IndexError, OverflowError) as err:
+        msg = f'malformed random.Random state: {type(err).__name__}: {err}'
+        raise _Malformed(msg) from None
+    return generator
+
+
 _EXT_DECODERS: Final[dict[int, Callable[[bytes], object]]] = {
     EXT_TUPLE: _decode_tuple,
     EXT_SET: _decode_set,
@@ -975,4 +1030,6 @@ _EXT_DECODERS: Final[dict[int, Callable[[bytes], object]]] = {
     EXT_DURATION: _decode_duration,
     EXT_DEQUE: _decode_deque,
     EXT_ORDEREDDICT: _decode_ordereddict,
+    EXT_NPRANDOM: _decode_nprandom,
+    EXT_PYRANDOM: _decode_pyrandom,
 }

@@ -643,3 +643,46 @@ def test_one_megabyte_array_is_fast() -> None:
     assert np.array_equal(decoded, array)
     print(f'1 MiB uint8 array encode+decode: {best * 1e3:.2f} ms')
     assert best < 0.05
+
+
+@pytest.mark.parametrize('bit_generator', ['PCG64', 'PCG64DXSM', 'MT19937', 'Philox', 'SFC64'])
+def test_numpy_generator_continues_its_stream_exactly(bit_generator: str) -> None:
+    generator = np.random.Generator(getattr(np.random, bit_generator)(7))
+    generator.normal(size=5)
+    generator.integers(0, 10, size=3, dtype=np.uint32)  # leaves a buffered half word
+    restored = decode(encode(generator))
+    assert type(restored) is np.random.Generator
+    assert type(restored.bit_generator).__name__ == bit_generator
+    assert np.array_equal(generator.random(100), restored.random(100))
+    assert np.array_equal(generator.integers(0, 10, 9, dtype=np.uint32),
+                          restored.integers(0, 10, 9, dtype=np.uint32))
+
+
+def test_python_random_continues_its_stream_exactly() -> None:
+    import random
+
+    generator = random.Random(3)
+    generator.gauss(0.0, 1.0)  # leaves a cached gaussian
+    restored = decode(encode(generator))
+    assert type(restored) is random.Random
+    assert [generator.gauss(0, 1) for _ in range(5)] == [restored.gauss(0, 1) for _ in range(5)]
+
+
+@pytest.mark.parametrize('payload', [
+    ['PCG64', {'state': {'state': 1}}],
+    ['PCG64', 'not a dict'],
+    ['os.system', {}],
+    ['MT19937', {'bit_generator': 'MT19937', 'state': {'key': [1, 2], 'pos': 0}}],
+    [1, 2],
+])
+def test_hostile_generator_payload_is_a_codec_error(payload: list[object]) -> None:
+    data = msgpack.packb(msgpack.ExtType(15, msgpack.packb(payload)))
+    with pytest.raises(CodecError, match='numpy Generator'):
+        decode(data)
+
+
+@pytest.mark.parametrize('state', [[3, [1, 2], None], 'x', [3, list(range(625)), 'gauss']])
+def test_hostile_python_random_payload_is_a_codec_error(state: object) -> None:
+    data = msgpack.packb(msgpack.ExtType(16, msgpack.packb(state)))
+    with pytest.raises(CodecError, match=r'random\.Random'):
+        decode(data)

@@ -1,4 +1,4 @@
-"""The ``rory`` command: ``rory supervise CONFIG.yaml``."""
+"""The ``rory`` command: ``rory supervise CONFIG.yaml``, ``rory sim ...``."""
 
 from __future__ import annotations
 
@@ -20,6 +20,13 @@ def _supervise(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``rory`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ['sim']:
+        # The simulator has its own parser (sim/cli.py); imported lazily so that supervising
+        # a node never loads MuJoCo.
+        from sim.cli import main as sim_main
+
+        return sim_main(argv[1:])
     parser = argparse.ArgumentParser(
         prog='rory', description='Crash recovery with state for ROS 2 nodes.'
     )
@@ -28,6 +35,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     supervise = sub.add_parser('supervise', help='run nodes and recover them when they crash')
     supervise.add_argument('config', help='supervisor configuration (YAML)')
     supervise.set_defaults(run=_supervise)
+    sub.add_parser('sim', help='the MuJoCo robot worlds bridged to ROS 2 (rory sim --help)',
+                   add_help=False)
     args = parser.parse_args(argv)
 
     logging.basicConfig(

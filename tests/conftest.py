@@ -4,15 +4,19 @@ ROS_DOMAIN_ID (disjoint ranges per pytest-xdist worker) and discovery stays on l
 from __future__ import annotations
 
 import itertools
+import os
 
 import pytest
 
 _next = itertools.count()
 _PER_WORKER = 30
+# Two pytest sessions on one machine at once (two checkouts, two developers) must not share
+# domains: give the second one another base, e.g. RORY_TEST_DOMAIN_BASE=120.
+_BASE = int(os.environ.get('RORY_TEST_DOMAIN_BASE', '10'))
 
 
 @pytest.fixture
 def ros_domain(worker_id: str) -> int:
     """A ROS domain id no other test of this session uses."""
     slot = 0 if worker_id == 'master' else int(worker_id.removeprefix('gw')) + 1
-    return 10 + slot * _PER_WORKER + next(_next) % _PER_WORKER
+    return _BASE + slot * _PER_WORKER + next(_next) % _PER_WORKER

@@ -1,0 +1,362 @@
+"""One run in the simulator: the sim, some target nodes, and a recorder, all real processes.
+
+This is what target tests and quality measurements stand on::
+
+    run = SimRun('office_small', tmp_path, domain_id=ros_domain, duration=40.0)
+    run.add_node('grid_slam', [sys.executable, 'targets/grid_slam/grid_slam_node.py',
+                               '--ros-args', '-p', 'use_sim_time:=true'])
+    run.record('/map', OccupancyGrid, keep_last=True)
+    run.record('/grid_slam/pose', PoseStamped)
+    result = run.run()
+    result.last('/map'); result.messages['/grid_slam/pose']; result.ground_truth
+
+The recorder lives in this process, in its own rclpy context, spun on a thread; it subscribes
+before any node starts. The simulator starts last with ``--wait-for`` so its clock stays at 0
+until the targets have subscribed (``wait_for``); it then runs ``duration`` sim seconds, writes
+``summary.json`` and ``path.csv`` and exits. Every process is started in its own session and
+reaped on the way out, also when the run fails. Each node's CPU seconds and peak RSS over the
+simulated part of the run are read from ``/proc`` just before it is stopped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+
+from rory_eval.scenario import scenario_env
+
+REPO = Path(__file__).resolve().parent.parent
+_CLK_TCK = os.sysconf('SC_CLK_TCK')
+
+LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                     reliability=ReliabilityPolicy.RELIABLE)
+"""Reliable, transient local, depth 1: what /goal_pose, /e_stop and maps are sent with."""
+
+
+class SimRunError(RuntimeError):
+    """A process of the run failed; the message names it and ends with its log's tail."""
+
+
+@dataclass
+class NodeUsage:
+    """What one node process used while the simulation ran."""
+
+    cpu_seconds: float  # user + system, its threads included
+    wall_seconds: float
+    peak_rss_mb: float  # VmHWM
+
+    @property
+    def cpu_percent(self) -> float:
+        """CPU seconds per wall second, in percent of one core."""
+        return 100.0 * self.cpu_seconds / max(self.wall_seconds, 1e-9)
+
+
+@dataclass
+class SimRunResult:
+    """What a run left: recorded messages, the simulator's summary and ground truth."""
+
+    out: Path
+    messages: dict[str, list[Any]]
+    received_at: dict[str, list[float]]  # monotonic receive times, parallel to messages
+    summary: dict[str, Any]
+    ground_truth: list[tuple[float, float, float, float]]  # (t, x, y, yaw) in map, 10 Hz
+    usage: dict[str, NodeUsage]
+    exit_codes: dict[str, int | None]  # None: still running at the end (then stopped)
+
+    def last(self, topic: str) -> Any:
+        """The last message recorded on topic; raises naming the topic if there is none."""
+        if not self.messages.get(topic):
+            msg = f'{topic}: nothing was recorded (see {self.out}/*.log)'
+            raise SimRunError(msg)
+        return self.messages[topic][-1]
+
+    def log(self, name: str) -> str:
+        """A node's (or 'sim') combined stdout and stderr."""
+        return (self.out / f'{name}.log').read_text(errors='replace')
+
+
+@dataclass
+class _Node:
+    name: str
+    argv: list[str]
+    cwd: Path
+    env: dict[str, str]
+    proc: subprocess.Popen[bytes] | None = None
+    start_ticks: int = 0
+    start_wall: float = 0.0
+    usage: NodeUsage | None = None
+
+
+@dataclass
+class _Recording:
+    topic: str
+    msg_type: Any
+    qos: QoSProfile | int
+    keep_last: bool
+    messages: list[Any] = field(default_factory=list)
+    times: list[float] = field(default_factory=list)
+
+
+class SimRun:
+    """Configure with ``add_node``/``record``/``publish_latched``, then ``run()`` once.
+
+    Args:
+        world: office_small, workshop or real_room.
+        out: folder for logs, summary.json and path.csv (created).
+        domain_id: this run's ROS_DOMAIN_ID; no other run may use it at the same time.
+        duration: sim seconds.
+        driver: 'internal' (the route, deterministic for a seed), 'route' (the route driver as
+            a ROS node) or 'none' (a target drives).
+        seed: the simulator's noise seed.
+        depth: whether the depth camera runs.
+        wait_for: the clock stays at 0 until each topic has that many subscribers (the
+            recorder's own subscriptions count).
+        sim_args: more ``rory sim run`` arguments.
+    """
+
+    def __init__(self, world: str, out: Path, *, domain_id: int, duration: float = 30.0,
+                 driver: str = 'internal', seed: int = 0, depth: bool = True,
+                 wait_for: dict[str, int] | None = None,
+                 sim_args: Sequence[str] = ()) -> None:
+        self.world = world
+        self.out = out.resolve()
+        self.domain_id = domain_id
+        self.duration = duration
+        self.driver = driver
+        self.seed = seed
+        self.depth = depth
+        self.wait_for = {'/scan': 1} if wait_for is None else dict(wait_for)
+        self.sim_args = list(sim_args)
+        self.env = scenario_env(domain_id)
+        self.env['PYTHONPATH'] = os.pathsep.join(
+            p for p in (str(REPO), os.environ.get('PYTHONPATH', '')) if p)
+        self._nodes: list[_Node] = []
+        self._recordings: dict[str, _Recording] = {}
+        self._latched: list[tuple[str, Any]] = []
+        self._done = False
+
+    def add_node(self, name: str, argv: Sequence[str], *, cwd: Path | None = None,
+                 env: dict[str, str] | None = None) -> None:
+        """A process to start before the simulator; its output goes to OUT/NAME.log."""
+        node_env = dict(self.env)
+        node_env.update(env or {})
+        self._nodes.append(_Node(name, list(argv), cwd or REPO, node_env))
+
+    def record(self, topic: str, msg_type: Any, *, qos: QoSProfile | int = 100,
+               keep_last: bool = False) -> None:
+        """Keep every message on topic (or only the last one: maps, clouds)."""
+        self._recordings[topic] = _Recording(topic, msg_type, qos, keep_last)
+
+    def publish_latched(self, topic: str, message: Any) -> None:
+        """Publish message reliable + transient local from the start (a goal, an initial pose)."""
+        self._latched.append((topic, message))
+
+    def run(self, *, timeout: float | None = None) -> SimRunResult:
+        """Start everything, wait for the simulator to finish its duration, stop and reap all."""
+        if self._done:
+            msg = 'a SimRun runs once'
+            raise SimRunError(msg)
+        self._done = True
+        self.out.mkdir(parents=True, exist_ok=True)
+        deadline = time.monotonic() + (timeout or self.duration * 3 + 90.0)
+        recorder = _Recorder(self.domain_id, self._recordings.values(), self._latched)
+        sim: subprocess.Popen[bytes] | None = None
+        exit_codes: dict[str, int | None] = {}
+        try:
+            for node in self._nodes:
+                node.proc = _spawn(node.argv, node.env, node.cwd, self.out / f'{node.name}.log')
+            sim = _spawn(self._sim_argv(), self.env, REPO, self.out / 'sim.log')
+            self._wait_for_clock(sim, deadline)
+            for node in self._nodes:
+                assert node.proc is not None
+                node.start_ticks = _cpu_ticks(node.proc.pid)
+                node.start_wall = time.monotonic()
+            while sim.poll() is None:
+                self._check_nodes()
+                if time.monotonic() > deadline:
+                    msg = f'the simulator did not finish in time\n{self._tail("sim")}'
+                    raise SimRunError(msg)
+                time.sleep(0.2)
+            if sim.returncode not in (0, 1):
+                msg = f'the simulator exited with {sim.returncode}\n{self._tail("sim")}'
+                raise SimRunError(msg)
+            for node in self._nodes:
+                assert node.proc is not None
+                if node.proc.poll() is None:
+                    node.usage = NodeUsage(
+                        (_cpu_ticks(node.proc.pid) - node.start_ticks) / _CLK_TCK,
+                        time.monotonic() - node.start_wall,
+                        _peak_rss_mb(node.proc.pid),
+                    )
+                exit_codes[node.name] = node.proc.poll()
+            # Let the last outputs arrive before the recorder stops.
+            time.sleep(0.5)
+        finally:
+            for node in self._nodes:
+                if node.proc is not None:
+                    _reap(node.proc)
+            if sim is not None:
+                _reap(sim)
+            recorder.close()
+        summary_path = self.out / 'summary.json'
+        summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+        return SimRunResult(
+            out=self.out,
+            messages={t: r.messages for t, r in self._recordings.items()},
+            received_at={t: r.times for t, r in self._recordings.items()},
+            summary=summary,
+            ground_truth=_read_ground_truth(self.out / 'path.csv'),
+            usage={n.name: n.usage for n in self._nodes if n.usage is not None},
+            exit_codes=exit_codes,
+        )
+
+    def _sim_argv(self) -> list[str]:
+        argv = [sys.executable, '-m', 'sim', 'run', '--world', self.world,
+                '--driver', self.driver, '--duration', str(self.duration),
+                '--seed', str(self.seed), '--out', str(self.out)]
+        if not self.depth:
+            argv.append('--no-depth')
+        for topic, count in self.wait_for.items():
+            argv += ['--wait-for', f'{topic}={count}']
+        return argv + self.sim_args
+
+    def _wait_for_clock(self, sim: subprocess.Popen[bytes], deadline: float) -> None:
+        # The simulator logs 'WORLD: running (seed ...' once --wait-for is satisfied and the
+        # clock runs.
+        log = self.out / 'sim.log'
+        while f'{self.world}: running (seed' not in log.read_text(errors='replace'):
+            self._check_nodes()
+            if sim.poll() is not None:
+                msg = f'the simulator exited with {sim.returncode}\n{self._tail("sim")}'
+                raise SimRunError(msg)
+            if time.monotonic() > deadline:
+                msg = f'the clock never started\n{self._tail("sim")}'
+                raise SimRunError(msg)
+            time.sleep(0.05)
+
+    def _check_nodes(self) -> None:
+        for node in self._nodes:
+            assert node.proc is not None
+            code = node.proc.poll()
+            if code is not None and code != 0:
+                msg = f'{node.name} exited with {code}\n{self._tail(node.name)}'
+                raise SimRunError(msg)
+
+    def _tail(self, name: str) -> str:
+        path = self.out / f'{name}.log'
+        text = path.read_text(errors='replace') if path.exists() else ''
+        return f'--- {path} (tail) ---\n{text[-3000:]}'
+
+
+class _Recorder:
+    """Subscribes (and publishes latched messages) in its own context, spun on a thread."""
+
+    def __init__(self, domain_id: int, recordings: Any, latched: list[tuple[str, Any]]) -> None:
+        # This process joins the run: the same discovery settings as the others.
+        env = scenario_env(domain_id)
+        os.environ.update({k: v for k, v in env.items() if k.startswith(('FAST', 'ROS_'))})
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.node = Node('simrun_recorder', context=self.context)
+        self._lock = threading.Lock()
+        for rec in recordings:
+            self.node.create_subscription(rec.msg_type, rec.topic, self._callback(rec), rec.qos)
+        self._publishers = []
+        for topic, message in latched:
+            pub = self.node.create_publisher(type(message), topic, LATCHED)
+            pub.publish(message)
+            self._publishers.append(pub)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _callback(self, rec: _Recording) -> Any:
+        def on_message(msg: Any) -> None:
+            now = time.monotonic()
+            with self._lock:
+                if rec.keep_last:
+                    rec.messages[:] = [msg]
+                    rec.times[:] = [now]
+                else:
+                    rec.messages.append(msg)
+                    rec.times.append(now)
+        return on_message
+
+    def _spin(self) -> None:
+        while self.context.ok():
+            with contextlib.suppress(Exception):
+                self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self) -> None:
+        self.context.try_shutdown()
+        self._thread.join(timeout=2.0)
+
+
+def _spawn(argv: list[str], env: dict[str, str], cwd: Path, log: Path) -> subprocess.Popen[bytes]:
+    with log.open('wb') as out:
+        return subprocess.Popen(argv, env=env, cwd=cwd, stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+
+
+def _reap(proc: subprocess.Popen[bytes]) -> None:
+    """SIGINT, then SIGKILL to the whole session; always waits."""
+    if proc.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGINT)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=5)
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+
+def _cpu_ticks(pid: int) -> int:
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except OSError:
+        return 0
+    return int(fields[11]) + int(fields[12])  # utime, stime
+
+
+def _peak_rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+            if line.startswith('VmHWM:'):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
+def _read_ground_truth(path: Path) -> list[tuple[float, float, float, float]]:
+    if not path.exists():
+        return []
+    lines = path.read_text().splitlines()
+    header = lines[0].split(',')
+    t, x, y, yaw = (header.index(c) for c in ('t', 'x', 'y', 'yaw'))
+    rows = []
+    for line in lines[1:]:
+        if not line or line.startswith('#'):
+            continue
+        cols = line.split(',')
+        rows.append((float(cols[t]), float(cols[x]), float(cols[y]), float(cols[yaw])))
+    return rows

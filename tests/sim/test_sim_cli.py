@@ -1,0 +1,76 @@
+"""``rory sim`` subcommands that need no ROS: list, info, map, route, render."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from sim.cli import main
+from sim.maps import load_map
+
+
+def test_list_and_info(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['list']) == 0
+    out = capsys.readouterr().out
+    assert 'office_small' in out and 'workshop' in out and 'real_room' in out
+    assert main(['info', '--world', 'workshop']) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info['default_goal'] == 'behind_pillars'
+    assert info['frames']['base_scan'] == [-0.064, 0.0, 0.18]
+    assert info['lidar']['beams'] == 360 and info['depth']['width'] == 80
+
+
+def test_unknown_world_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(['map', '--world', 'nowhere', '--out', 'x'])
+    assert exc.value.code == 2
+    assert "invalid choice: 'nowhere'" in capsys.readouterr().err
+
+
+def test_map_writes_map_server_files(tmp_path: Path) -> None:
+    assert main(['map', '--world', 'real_room', '--out', str(tmp_path)]) == 0
+    grid = load_map(tmp_path / 'map.yaml')
+    assert grid.resolution == 0.05
+    assert (tmp_path / 'map.pgm').exists()
+
+
+def test_route_then_render_the_recorded_path(tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / 'run'
+    assert main(['route', '--world', 'real_room', '--seed', '4', '--out', str(out)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary['completed'] and summary['collisions'] == 0
+    assert json.loads((out / 'summary.json').read_text())['seed'] == 4
+    header = (out / 'path.csv').read_text().splitlines()[0]
+    assert header.startswith('t,x,y,yaw,odom_x,odom_y,odom_yaw')
+    main(['map', '--world', 'real_room', '--out', str(tmp_path)])
+    png = tmp_path / 'fig.png'
+    assert main(['render', '--world', 'real_room', '--out', str(png), '--path',
+                 str(out / 'path.csv'), '--odometry', '--map', str(tmp_path / 'map.yaml')]) == 0
+    assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    assert png.stat().st_size > 10_000
+
+
+def test_render_names_a_bad_path_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / 'path.csv'
+    bad.write_text('t,x\n0,1\n')
+    code = main(['render', '--world', 'real_room', '--out', str(tmp_path / 'f.png'),
+                 '--path', str(bad)])
+    assert code == 2
+    assert f"{bad}: column 'y' missing" in capsys.readouterr().err
+
+
+def test_run_is_the_default_subcommand(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(['--world', 'nowhere', '--driver', 'route'])
+    assert exc.value.code == 2
+    assert 'rory sim run: error' in capsys.readouterr().err
+
+
+def test_rory_sim_goes_to_the_simulator_cli(capsys: pytest.CaptureFixture[str]) -> None:
+    from rory_runtime.cli import main as rory_main
+
+    assert rory_main(['sim', 'info', '--world', 'real_room']) == 0
+    assert json.loads(capsys.readouterr().out)['default_goal'] == 'far_corner'

@@ -9,10 +9,11 @@ import os
 import pytest
 
 _next = itertools.count()
-_PER_WORKER = 30
 # Two pytest sessions on one machine at once (two checkouts, two developers) must not share
-# domains: give the second one another base, e.g. RORY_TEST_DOMAIN_BASE=120.
+# domains: give the second one another base and span, e.g. RORY_TEST_DOMAIN_BASE=120
+# RORY_TEST_DOMAIN_SPAN=20 (ids 120..139 per worker; Fast DDS takes ids up to 232).
 _BASE = int(os.environ.get('RORY_TEST_DOMAIN_BASE', '10'))
+_PER_WORKER = int(os.environ.get('RORY_TEST_DOMAIN_SPAN', '30'))
 
 
 @pytest.fixture

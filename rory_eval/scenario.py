@@ -46,6 +46,7 @@ class Program:
     file: str  # the program, relative to the instrumented folder
     state_topic: str
     node: str = 'node'  # its id in the supervisor config
+    settings: tuple[tuple[str, Any], ...] = ()  # more fields of its supervisor config entry
 
 
 INTEGRATOR = Program(
@@ -147,6 +148,7 @@ def prepare(
         'command': ['python', f'out/{program.file}'],
         'method': method,
     }
+    node.update(program.settings)
     if interval is not None:
         node['checkpoint_interval'] = interval
     if pace is not None:

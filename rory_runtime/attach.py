@@ -32,12 +32,14 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import faulthandler
 import functools
 import inspect
 import json
 import logging
 import os
 import queue
+import signal
 import sys
 import threading
 import time
@@ -48,6 +50,8 @@ from pathlib import Path
 from typing import Any, TypeVar, cast
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.serialization import deserialize_message
@@ -83,6 +87,7 @@ _logger = logging.getLogger('rory.runtime')
 N = TypeVar('N', bound=type[Node])
 
 DEFAULT_INTERVAL = 2.0
+BEAT_PERIOD = 0.2  # seconds between heartbeats (the supervisor's hang_timeout is far longer)
 
 SWITCH_CONFIRMATIONS = 3
 """Relayed messages that must also arrive live before a topic switches to its live reader."""
@@ -527,6 +532,15 @@ class NodeRuntime:
         if self.method.logs:
             # Loading the typestore costs ~0.1 s; do it before the first message needs it.
             threading.Thread(target=default_typestore, daemon=True).start()
+        # The heartbeat: a timer on the node's own executor, on the steady clock (sim time may
+        # stand still; a stuck executor must still show). The supervisor kills a node whose
+        # beat stops for its hang_timeout, after SIGUSR1 has made this process print where
+        # every thread is (faulthandler), so the operator sees where it hung.
+        with contextlib.suppress(ValueError, RuntimeError, OSError):
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
+        self.inflight.beat()
+        Node.create_timer(node, BEAT_PERIOD, self.inflight.beat, callback_group=self._group,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
         # The first callback the executor runs is this one, so restoring here happens before
         # any user callback (user timers are held and user messages buffered until release).
         self._startup_timer = Node.create_timer(

@@ -1,4 +1,4 @@
-"""Which message a node was applying when it died: the in-flight slot.
+"""Which message a node was applying when it died, and whether it is alive: the in-flight slot.
 
 The node's runtime writes the topic and identity of a message into a small memory-mapped file
 before calling the user's callback, and marks it idle after. A write to a shared mapping is a
@@ -6,10 +6,16 @@ memory store, no system call, and it survives the process being killed (the page
 the file). After a crash the supervisor reads the slot: the message the node died applying is a
 suspect; dying on the same message twice makes it a poison message (see supervisor/poison.py).
 
+The same page carries the node's heartbeat: a timer on the node's executor writes
+``CLOCK_MONOTONIC`` (system-wide, so the supervisor can compare) a few times a second. A node
+whose executor is stuck - in a callback that never returns, a deadlock, a busy loop - stops
+beating, and the supervisor treats it as crashed. Reading it is a file read: no DDS, so a
+loaded network cannot fake a hang.
+
 Layout (little endian, 256 bytes)::
 
     magic 'RYIF' | version u8 | busy u8 | topic_len u16 | incarnation u32 | seq u32
-    source_ns i64 | recv_ns i64 | topic (utf-8, up to 224 bytes)
+    source_ns i64 | recv_ns i64 | topic (utf-8, up to 216 bytes) ... | beat_ns i64 (at 248)
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from __future__ import annotations
 import mmap
 import os
 import struct
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,8 +32,10 @@ from .protocol import MessageId
 SLOT_SIZE = 256
 _HEAD = struct.Struct('<4sBBHIIqq')
 _MAGIC = b'RYIF'
-_VERSION = 1
-_TOPIC_MAX = SLOT_SIZE - _HEAD.size
+_VERSION = 2
+_BEAT = struct.Struct('<q')
+_BEAT_AT = SLOT_SIZE - _BEAT.size
+_TOPIC_MAX = _BEAT_AT - _HEAD.size
 
 
 @dataclass(frozen=True)
@@ -57,6 +66,7 @@ class InFlightSlot:
             os.close(fd)
         self._incarnation = incarnation
         self._topic_cache: dict[str, bytes] = {}
+        self._map[_BEAT_AT:SLOT_SIZE] = _BEAT.pack(0)  # no beat yet from this process
         self.idle()
 
     def busy(self, topic: str, ident: MessageId, recv_ns: int) -> None:
@@ -74,9 +84,27 @@ class InFlightSlot:
         """No callback is running on a message."""
         self._map[:8] = _HEAD.pack(_MAGIC, _VERSION, 0, 0, 0, 0, 0, 0)[:8]
 
+    def beat(self) -> None:
+        """The executor is alive (called from a timer on it)."""
+        _BEAT.pack_into(self._map, _BEAT_AT, time.monotonic_ns())
+
     def close(self) -> None:
         """Unmap."""
         self._map.close()
+
+
+def read_beat(path: Path) -> int | None:
+    """The node's last heartbeat (``time.monotonic_ns()``), or None before its first."""
+    try:
+        with path.open('rb') as f:
+            f.seek(_BEAT_AT)
+            data = f.read(_BEAT.size)
+    except OSError:
+        return None
+    if len(data) != _BEAT.size:
+        return None
+    beat: int = _BEAT.unpack(data)[0]
+    return beat or None
 
 
 def read_slot(path: Path) -> InFlight | None:

@@ -8,6 +8,8 @@ Example::
         method: rory              # rory | restart | checkpoint | replay
         checkpoint_interval: 2.0  # seconds; default: keyvars.yaml's, else 2.0
         replay: paced             # paced | fast; default: keyvars.yaml's, else paced
+        hang_timeout: 10.0        # s without a heartbeat: hung, killed, recovered (null: off)
+        start_timeout: 60.0       # s from spawn to the first heartbeat (null: off)
     safe_state:                   # held from S1 until S4
       - topic: /e_stop
         type: std_msgs/msg/Bool
@@ -62,6 +64,10 @@ class NodeConfig:
     restart_on_clean_exit: bool = False
     env: Mapping[str, str] = field(default_factory=dict)
     backoff: Backoff = Backoff()
+    # A node whose executor stops beating this long is hung: killed, then recovered.
+    hang_timeout: float | None = 10.0
+    # From spawn to the first beat (imports, rclpy.init, the node's constructor).
+    start_timeout: float | None = 60.0
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,14 @@ class _Fields:
             raise self.error(key, f'must be {">" if strict else ">="} {minimum}, got {value}')
         return float(value)
 
+    def optional_number(self, key: str, default: float | None) -> float | None:
+        """A positive number, or null for 'off'."""
+        if key in self.obj and self.obj[key] is None:
+            return None
+        if key not in self.obj:
+            return default
+        return self.number(key, 0.0)
+
     def boolean(self, key: str, default: bool) -> bool:
         value = self.obj.get(key, default)
         if not isinstance(value, bool):
@@ -186,7 +200,7 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         obj,
         {
             'name', 'command', 'method', 'checkpoint_interval', 'replay',
-            'restart_on_clean_exit', 'env', 'backoff',
+            'restart_on_clean_exit', 'env', 'backoff', 'hang_timeout', 'start_timeout',
         },
     )
     name = f.required('name')
@@ -222,6 +236,8 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         restart_on_clean_exit=f.boolean('restart_on_clean_exit', False),
         env={str(k): str(v) for k, v in env.items()},
         backoff=_backoff(path, f'{where}.backoff', f.obj.get('backoff') or {}),
+        hang_timeout=f.optional_number('hang_timeout', NodeConfig.hang_timeout),
+        start_timeout=f.optional_number('start_timeout', NodeConfig.start_timeout),
     )
 
 

@@ -36,6 +36,7 @@ from .. import protocol
 from ..dds import fast_rediscovery_env
 from ..errors import ProtocolError
 from ..fsutil import make_private_dir
+from ..inflight import read_beat, slot_path
 from ..log import SegmentStore, default_typestore
 from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
@@ -53,6 +54,14 @@ SYNC_PERIOD = 0.05
 """Seconds between SYNC envelopes until the node answers (DDS discovery of a new process)."""
 
 STOP_GRACE = (3.0, 2.0)
+HANG_DUMP_GRACE = 0.3
+"""Seconds between SIGUSR1 (a hung node prints its threads' stacks) and SIGKILL."""
+
+# States in which a node has a process that must beat.
+_LIVE = frozenset({
+    NodeState.STARTING, NodeState.ARMING, NodeState.RUNNING, NodeState.RESTORING,
+    NodeState.REPLAYING,
+})
 """Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
 
 
@@ -134,6 +143,10 @@ class ManagedNode:
         self.checkpoints = CheckpointStore(sup.config.store, cfg.name)
         self.segments = SegmentStore(sup.config.store, cfg.name)
         self.poison = PoisonGuard(sup.config.store, cfg.name, self.segments)
+        self.slot = slot_path(sup.config.store, cfg.name)
+        self.spawned_ns = 0
+        self.hang_kill_at: float | None = None  # SIGKILL due (SIGUSR1 sent: a stack dump)
+        self.hung_for: float | None = None  # how long it had not beaten, once judged hung
         self.replay_pub: Publisher = sup.ros_node.create_publisher(
             UInt8MultiArray, protocol.replay_topic(cfg.name), protocol.REPLAY_QOS
         )
@@ -156,6 +169,9 @@ class ManagedNode:
         """Start a new process of this node (main thread only)."""
         self.incarnation += 1
         self.hello = None
+        self.spawned_ns = time.monotonic_ns()
+        self.hang_kill_at = None
+        self.hung_for = None
         # One nonce per process: a SYNCED that answers any of its SYNCs proves the path.
         self.sync_nonce = random.getrandbits(63)
         self.synced_counts = None
@@ -208,6 +224,8 @@ class ManagedNode:
             return
         self.child = None
         how = describe_exit(ev.code)
+        if self.hung_for is not None:
+            how = f'hung (no heartbeat for {self.hung_for:.1f} s), {how}'
         self.sup.events_log.write('exit', self.id, code=ev.code, incarnation=ev.incarnation)
         if ev.code == 0 and not self.cfg.restart_on_clean_exit:
             self.sm.change_state(NodeState.EXITED, how)
@@ -409,8 +427,10 @@ class ManagedNode:
             self.recovery = None
 
     def tick(self, now: float) -> None:
-        """Time-driven work: SYNC resends, arming, backoff expiry."""
+        """Time-driven work: hang detection, SYNC resends, arming, backoff expiry."""
         state = self.sm.state
+        if state in _LIVE:
+            self._check_heartbeat(now)
         if state == NodeState.BACKOFF and self.restart_at is not None and now >= self.restart_at:
             self._restart()
         elif state in (NodeState.ARMING, NodeState.REPLAYING):
@@ -421,6 +441,45 @@ class ManagedNode:
                 self.replay_pub.publish(
                     protocol.pack_release(self.incarnation, self.segments.next_number(), 0)
                 )
+
+    def _check_heartbeat(self, now: float) -> None:
+        """Crash detection beyond exit codes: a node that stops beating is killed."""
+        child = self.child
+        if child is None:
+            return
+        if self.hang_kill_at is not None:
+            if now >= self.hang_kill_at:
+                self.hang_kill_at = float('inf')  # once; its exit is reaped as a crash
+                child.send_signal(signal.SIGKILL)
+            return
+        now_ns = time.monotonic_ns()
+        beat = read_beat(self.slot)
+        if beat is None or beat < self.spawned_ns:
+            # Not beating yet: still importing, initialising, constructing the node.
+            limit, since, what = self.cfg.start_timeout, self.spawned_ns, 'start'
+        else:
+            limit, since, what = self.cfg.hang_timeout, beat, 'heartbeat'
+        if limit is None or now_ns - since <= limit * 1e9:
+            return
+        self.hung_for = (now_ns - since) / 1e9
+        busy = self.poison.died_on(self.incarnation)
+        on = f' while applying {busy.topic} {busy.ident}' if busy is not None else ''
+        _logger.error(
+            '%s %s: hung: no %s for %.1f s (limit %.1f s)%s; killing pid %d', LOG_PREFIX,
+            self.id, what, self.hung_for, limit, on, child.pid,
+        )
+        self.sup.events_log.write(
+            'hang', self.id, incarnation=self.incarnation, stalled_s=round(self.hung_for, 3),
+            waiting_for=what, topic=busy.topic if busy else None,
+            source_ns=busy.ident[0] if busy else None, seq=busy.ident[1] if busy else None,
+        )
+        if what == 'heartbeat':
+            # faulthandler in the node prints every thread's stack: where it hung.
+            child.send_signal(signal.SIGUSR1)
+            self.hang_kill_at = now + HANG_DUMP_GRACE
+        else:
+            self.hang_kill_at = float('inf')
+            child.send_signal(signal.SIGKILL)
 
     def stop(self) -> None:
         """Stop the node's process: SIGINT, then SIGTERM, then SIGKILL."""

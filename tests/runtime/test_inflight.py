@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from rory_runtime.inflight import InFlight, InFlightSlot, read_slot
+from rory_runtime.inflight import InFlight, InFlightSlot, read_beat, read_slot
 
 
 def test_busy_then_idle(tmp_path: Path) -> None:
@@ -42,3 +42,23 @@ def test_garbage_or_missing_slot_reads_as_nothing(tmp_path: Path) -> None:
     assert read_slot(tmp_path / 'garbage') is None
     (tmp_path / 'short').write_bytes(b'RYIF')
     assert read_slot(tmp_path / 'short') is None
+
+
+def test_heartbeat_is_monotonic_time_and_a_new_process_starts_without_one(
+    tmp_path: Path,
+) -> None:
+    import time
+
+    path = tmp_path / 'slot'
+    assert read_beat(path) is None
+    slot = InFlightSlot(path, incarnation=1)
+    assert read_beat(path) is None  # no beat yet
+    before = time.monotonic_ns()
+    slot.beat()
+    beat = read_beat(path)
+    assert beat is not None and before <= beat <= time.monotonic_ns()
+    slot.busy('/a' * 200, (1, 2), 3)  # the longest topic does not overwrite the beat
+    assert read_beat(path) == beat
+    slot.close()
+    InFlightSlot(path, incarnation=2).close()
+    assert read_beat(path) is None

@@ -225,6 +225,10 @@ ERRORS = [
     ('nodes:\n' + NODE + NODE, 'nodes[1].name'),
     ('nodes:\n' + NODE + '  - name: b\n    command: [x]\n' + NODE, 'nodes[2].name'),
     ('nodes:\n  - name: a\n', 'nodes[0].command'),
+    ('nodes:\n' + NODE + '    hang_timeout: 0\n', 'nodes[0].hang_timeout'),
+    ('nodes:\n' + NODE + '    hang_timeout: -1\n', 'nodes[0].hang_timeout'),
+    ('nodes:\n' + NODE + '    hang_timeout: soon\n', 'nodes[0].hang_timeout'),
+    ('nodes:\n' + NODE + '    start_timeout: .nan\n', 'nodes[0].start_timeout'),
     ('nodes:\n  - name: a\n    command: []\n', 'nodes[0].command'),
     ('nodes:\n  - name: a\n    command: ""\n', 'nodes[0].command'),
     ('nodes:\n  - name: a\n    command: [x, 1]\n', 'nodes[0].command'),
@@ -388,3 +392,11 @@ def test_safe_state_type_with_trailing_newline_is_refused(tmp_path: Path) -> Non
     text = MINIMAL + 'safe_state:\n  - {topic: /e, type: "std_msgs/msg/Bool\\n", hold: {}}\n'
     err = refusal(write(tmp_path, text))
     assert err.field == 'safe_state[0].type'
+
+
+def test_hang_and_start_timeouts(tmp_path: Path) -> None:
+    default = load_config(write(tmp_path, MINIMAL)).nodes[0]
+    assert (default.hang_timeout, default.start_timeout) == (10.0, 60.0)
+    text = 'nodes:\n' + NODE + '    hang_timeout: 2.5\n    start_timeout: null\n'
+    node = load_config(write(tmp_path, text, 'b.yaml')).nodes[0]
+    assert (node.hang_timeout, node.start_timeout) == (2.5, None)

@@ -12,10 +12,11 @@ from .errors import ConfigError, RoryError
 
 def _supervise(args: argparse.Namespace) -> int:
     from .supervisor.config import load_config
-    from .supervisor.supervisor import Supervisor
+    from .supervisor.supervisor import StartMode, Supervisor
 
     config = load_config(args.config)
-    return Supervisor(config).run()
+    start: StartMode = 'fresh' if args.fresh else 'resume' if args.resume else 'auto'
+    return Supervisor(config, start=start).run()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -34,6 +35,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub = parser.add_subparsers(dest='command', required=True)
     supervise = sub.add_parser('supervise', help='run nodes and recover them when they crash')
     supervise.add_argument('config', help='supervisor configuration (YAML)')
+    start = supervise.add_mutually_exclusive_group()
+    start.add_argument('--fresh', action='store_true',
+                       help='start every node empty, setting an earlier run aside in '
+                            '<store>/.previous (default after a clean stop)')
+    start.add_argument('--resume', action='store_true',
+                       help="recover every node from the store's checkpoints and logs "
+                            '(default after a run that did not stop cleanly)')
     supervise.set_defaults(run=_supervise)
     sub.add_parser('sim', help='the MuJoCo robot worlds bridged to ROS 2 (rory sim --help)',
                    add_help=False)

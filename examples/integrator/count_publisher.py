@@ -1,8 +1,9 @@
 """Publishes 1, 2, ..., N on /numbers at a fixed rate: a deterministic input for the integrator.
 
-Usage: count_publisher.py N RATE_HZ [MIN_SUBSCRIBERS]
-It waits for MIN_SUBSCRIBERS (default 1) matched subscriptions before the first number, so the
-no-crash run receives all of them, then exits 0 after the last one has been acknowledged.
+Usage: count_publisher.py N RATE_HZ [MIN_SUBSCRIBERS [FIRST]]
+FIRST (default 1) makes it publish FIRST, ..., FIRST + N - 1. It waits for MIN_SUBSCRIBERS
+(default 1) matched subscriptions before the first number, so the no-crash run receives all
+of them, then exits 0 after the last one has been acknowledged.
 """
 
 import sys
@@ -16,6 +17,7 @@ from std_msgs.msg import Int64
 def main():
     count, rate = int(sys.argv[1]), float(sys.argv[2])
     min_subs = int(sys.argv[3]) if len(sys.argv) > 3 else 1
+    first = int(sys.argv[4]) if len(sys.argv) > 4 else 1
     rclpy.init()
     node = rclpy.create_node('count_publisher')
     pub = node.create_publisher(Int64, '/numbers', QoSProfile(depth=1000))
@@ -27,7 +29,7 @@ def main():
         delay = start + (i - 1) / rate - time.monotonic()
         if delay > 0:
             time.sleep(delay)
-        pub.publish(Int64(data=i))
+        pub.publish(Int64(data=first + i - 1))
     pub.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0))
     node.destroy_node()
     rclpy.try_shutdown()

@@ -15,7 +15,10 @@ matched, so that a crash from then on loses nothing. A crash::
             -> REPLAYING (S3: replay) -> RUNNING (S4 release)
 
 with ``BACKOFF`` between CRASHED and RESTORING in a crash loop and ``FATAL`` when it gives up.
-A clean exit (status 0) is the node finishing: ``EXITED``, not a crash.
+A clean exit (status 0) is the node finishing: ``EXITED``, not a crash. After a supervisor
+that did not stop cleanly (killed, power cut), the next one resumes the node from the store::
+
+    STOPPED -> RESTORING (S1, S2, S3 from the checkpoints and logs on disk) -> ...
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ class NodeState(enum.StrEnum):
 
 S = NodeState
 TRANSITIONS: Final[dict[NodeState, frozenset[NodeState]]] = {
-    S.STOPPED: frozenset({S.STARTING}),
+    S.STOPPED: frozenset({S.STARTING, S.RESTORING}),
     S.STARTING: frozenset({S.ARMING, S.RUNNING, S.CRASHED, S.EXITED, S.STOPPING}),
     S.ARMING: frozenset({S.RUNNING, S.CRASHED, S.EXITED, S.STOPPING}),
     S.RUNNING: frozenset({S.CRASHED, S.EXITED, S.STOPPING}),

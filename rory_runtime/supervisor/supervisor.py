@@ -8,6 +8,7 @@ recovering nodes; one streamer thread per recovery feeds a shadow topic.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import logging
@@ -22,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import Any, TextIO
+from typing import Any, Literal, TextIO
 
 import rclpy
 import rclpy.utilities
@@ -45,10 +46,14 @@ from .poison import PoisonGuard
 from .process import Child, Launcher, PopenLauncher, RestartPolicy, describe_exit
 from .recovery import Recovery
 from .ring import Ring, RingContext
+from .run_marker import PreviousRun, RunMarker
 from .safety import SafeState
 from .states import LOG_PREFIX, NodeState, NodeStateMachine, StateEvent
 
 _logger = logging.getLogger('rory.supervisor')
+
+StartMode = Literal['auto', 'fresh', 'resume']
+"""auto: resume the nodes of a run that did not stop cleanly, else fresh."""
 
 SYNC_PERIOD = 0.05
 """Seconds between SYNC envelopes until the node answers (DDS discovery of a new process)."""
@@ -147,6 +152,7 @@ class ManagedNode:
         self.spawned_ns = 0
         self.hang_kill_at: float | None = None  # SIGKILL due (SIGUSR1 sent: a stack dump)
         self.hung_for: float | None = None  # how long it had not beaten, once judged hung
+        self.resumed = False  # first started from the store of a run that did not stop
         self.replay_pub: Publisher = sup.ros_node.create_publisher(
             UInt8MultiArray, protocol.replay_topic(cfg.name), protocol.REPLAY_QOS
         )
@@ -215,6 +221,36 @@ class ManagedNode:
         """First start of the node."""
         self.sm.change_state(NodeState.STARTING)
         self.spawn(Mode.FRESH)
+
+    def has_stored_state(self) -> bool:
+        """A checkpoint or a message log of an earlier run is on disk."""
+        return bool(self.segments.numbers()) or self.checkpoints.latest_valid() is not None
+
+    def start_resumed(self, down_since: float | None) -> None:
+        """First start after a supervisor that died: a recovery from the store (S1-S4).
+
+        The node died with that supervisor. Its checkpoints and its own message log are on
+        disk; what its inputs published while no supervisor ran was recorded by nobody, and
+        the event says for how long that was.
+        """
+        now = time.monotonic()
+        gap = None if down_since is None else max(0.0, time.time() - down_since)
+        self.sup.events_log.write('resumed', self.id, unrecorded_s=gap)
+        _logger.warning(
+            '%s %s: resuming from %s after a supervisor that did not stop cleanly%s',
+            LOG_PREFIX, self.id, self.sup.config.store / self.id,
+            '' if gap is None else f' (inputs unrecorded for up to {gap:.1f} s)',
+        )
+        self.sm.change_state(NodeState.RESTORING, 'resume from the store')
+        rec = Recovery(
+            node_id=self.id, crashed=now, crashed_ns=time.time_ns(), safety=self.sup.safety,
+            ring=None, segments=self.segments, checkpoints=self.checkpoints,
+        )
+        self.recovery = rec
+        self.resumed = True
+        rec.s1_safe_state()
+        rec.s2_isolate()  # the ring joins at HELLO, once the node has named its inputs
+        rec.s3_restart(lambda: self.spawn(Mode.RECOVER))
 
     def on_exit(self, ev: ChildExited) -> None:
         """The process ended."""
@@ -346,10 +382,11 @@ class ManagedNode:
                 self.ring = self.sup.make_ring(self.id)
             self.ring.ensure(self.inputs)
             if self.recovery is not None and self.recovery.ring is None:
-                _logger.warning(
-                    '%s %s: crashed before RORY knew its inputs; messages published until now '
-                    'are not recorded', LOG_PREFIX, self.id,
-                )
+                if not self.resumed:
+                    _logger.warning(
+                        '%s %s: crashed before RORY knew its inputs; messages published until '
+                        'now are not recorded', LOG_PREFIX, self.id,
+                    )
                 self.recovery.ring = self.ring
                 self.recovery.s2_isolate()
         if self.recovery is not None:
@@ -510,8 +547,10 @@ def _fields(status: dict[str, Any]) -> dict[str, Any]:
 class Supervisor:
     """Runs the configured nodes until stopped by a signal or until they have all ended."""
 
-    def __init__(self, config: SupervisorConfig, launcher: Launcher | None = None) -> None:
+    def __init__(self, config: SupervisorConfig, launcher: Launcher | None = None,
+                 start: StartMode = 'auto') -> None:
         self.config = config
+        self.start_mode = start
         self.launcher: Launcher = launcher or PopenLauncher()
         self.events: queue.Queue[Event] = queue.Queue()
         self.nodes: dict[str, ManagedNode] = {}
@@ -535,12 +574,38 @@ class Supervisor:
             self._ring_ctx = RingContext()
         return Ring(self._ring_ctx, node_id)
 
+    def _claim_store(self) -> tuple[RunMarker, bool, float | None]:
+        """Lock the store; whether to resume, and since when the nodes were unsupervised."""
+        marker = RunMarker(self.config.store)
+        previous = marker.acquire()
+        unclean = previous is not None and not previous.clean
+        resume = self.start_mode == 'resume' or (self.start_mode == 'auto' and unclean)
+        down_since = None
+        if resume and previous is not None:
+            # The node logged up to its death; its newest log file's mtime bounds that.
+            down_since = self._last_write(previous)
+        return marker, resume, down_since
+
+    def _last_write(self, previous: PreviousRun) -> float | None:
+        newest = 0.0
+        for node in self.config.nodes:
+            folder = self.config.store / node.name
+            if folder.exists():
+                for path in folder.rglob('*'):
+                    with contextlib.suppress(OSError):
+                        newest = max(newest, path.stat().st_mtime)
+        return newest or (previous.started or None)
+
     def _prepare_store(self) -> None:
         # A fresh run must not mix with an earlier run's checkpoints and logs: set them aside
         # (the newest earlier run is kept under .previous/ for inspection).
         store = self.config.store
         make_private_dir(store)
         previous = store / '.previous'
+        events = store / 'events.jsonl'
+        if events.exists():
+            make_private_dir(previous)
+            events.replace(previous / 'events.jsonl')
         for node in self.config.nodes:
             current = store / node.name
             if current.exists():
@@ -576,7 +641,9 @@ class Supervisor:
         """Supervise until stopped. Returns the process exit code."""
         self._apply_dds_settings()
         restore_signals = self._install_signals()
-        self._prepare_store()
+        marker, resume, down_since = self._claim_store()
+        if not resume:
+            self._prepare_store()
         self.events_log = EventLog(self.config.store / 'events.jsonl')
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         self.ros_node = Node('rory_supervisor')
@@ -593,11 +660,17 @@ class Supervisor:
             executor.add_node(self.ros_node)
             spinner.start()
             for node in self.nodes.values():
-                node.start()
+                if resume and node.has_stored_state():
+                    node.start_resumed(down_since)
+                else:
+                    node.start()
             code = self._loop()
         finally:
             for node in self.nodes.values():
                 node.stop()
+            # Every node was stopped by us: the next run starts fresh.
+            marker.mark_clean()
+            marker.release()
             if self._ring_ctx is not None:
                 self._ring_ctx.shutdown()
             # Shut the context down first so the spinner leaves spin_once, then join it: an

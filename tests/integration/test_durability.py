@@ -1,0 +1,126 @@
+"""The supervisor itself SIGKILLed: started again, it recovers the node from the store."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from rory_eval.scenario import (
+    EXAMPLE,
+    _Events,
+    _Observer,
+    _process,
+    _Tracker,
+    prepare,
+    scenario_env,
+)
+
+pytestmark = pytest.mark.ros
+
+SUPERVISE = [sys.executable, '-m', 'rory_runtime.cli', 'supervise']
+
+
+def _wait(what: str, ok: Callable[[], bool], timeout: float, log: Path,
+          sup: subprocess.Popen[bytes] | None = None) -> None:
+    deadline = time.monotonic() + timeout
+    while not ok():
+        if time.monotonic() > deadline or (sup is not None and sup.poll() is not None):
+            text = log.read_text(errors='replace') if log.exists() else ''
+            raise AssertionError(f'{what} did not happen in {timeout} s\n{text[-3000:]}')
+        time.sleep(0.02)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is dead too: its parent (the killed supervisor) never reaped it
+    stat = Path(f'/proc/{pid}/stat').read_text()
+    return stat.rsplit(')', 1)[1].split()[0] != 'Z'
+
+
+def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    workdir = tmp_path.resolve()
+    config = prepare(workdir, 'rory', interval=1.0, pace='fast')
+    store = workdir / 'store-rory'
+    env = scenario_env(ros_domain)
+    os.environ.update({k: v for k, v in env.items() if k.startswith(('FAST', 'ROS_'))})
+    observer = _Observer(ros_domain)
+    events = _Events(store / 'events.jsonl')
+    tracker = _Tracker()
+    publisher = [sys.executable, str(EXAMPLE / 'count_publisher.py')]
+
+    def history() -> list[int]:
+        return list(observer.state.get('history', []))
+
+    def running() -> bool:
+        tracker.feed(events.poll())
+        return tracker.state == 'RUNNING'
+
+    try:
+        log1 = workdir / 'supervisor-1.log'
+        with _process([*SUPERVISE, str(config)], env, workdir, log1) as sup1:
+            _wait('first start', running, 30, log1, sup1)
+            node_pid = tracker.pid
+            assert node_pid is not None
+            # 1..100 over 2 s: checkpoints every second, the last numbers only in the log
+            subprocess.run([*publisher, '100', '50', '2'], env=env, check=True, timeout=60)
+            _wait('1..100 applied', lambda: history() == list(range(1, 101)), 15, log1)
+            sup1.send_signal(signal.SIGKILL)  # not its session: the node must die by itself
+            sup1.wait()
+            _wait('the node dying with its supervisor', lambda: not _alive(node_pid), 5, log1)
+
+        marker = json.loads((store / 'supervisor.json').read_text())
+        assert marker['clean'] is False
+        log2 = workdir / 'supervisor-2.log'
+        with _process([*SUPERVISE, str(config)], env, workdir, log2) as sup2:
+            _wait('resumed', lambda: running() and tracker.pid != node_pid, 60, log2, sup2)
+            kinds = [e['kind'] for e in events.events]
+            assert 'resumed' in kinds
+            resumed = next(e for e in events.events if e['kind'] == 'resumed')
+            assert resumed['unrecorded_s'] is not None and resumed['unrecorded_s'] < 30
+            assert (store / '.previous').exists() is False  # nothing was set aside
+            _wait('state restored', lambda: history() == list(range(1, 101)), 15, log2)
+
+            # A second supervisor on the same store is refused while this one lives.
+            refused = subprocess.run([*SUPERVISE, str(config)], env=env, capture_output=True,
+                                     text=True, timeout=60)
+            assert refused.returncode == 1
+            assert 'in use by another supervisor' in refused.stderr
+
+            # ... and the node goes on from where it was.
+            subprocess.run([*publisher, '50', '50', '2', '101'], env=env, check=True,
+                           timeout=60)
+            _wait('101..150 applied', lambda: history() == list(range(1, 151)), 15, log2)
+            sup2.send_signal(signal.SIGINT)
+            assert sup2.wait(timeout=30) == 0
+        assert json.loads((store / 'supervisor.json').read_text())['clean'] is True
+
+        # After a clean stop the next run starts fresh and sets the old store aside.
+        log3 = workdir / 'supervisor-3.log'
+        with _process([*SUPERVISE, str(config)], env, workdir, log3) as sup3:
+            _wait('the old run set aside', (store / '.previous' / 'events.jsonl').exists, 30,
+                  log3, sup3)
+            fresh_events = _Events(store / 'events.jsonl')
+            fresh = _Tracker()
+
+            def fresh_running() -> bool:
+                fresh.feed(fresh_events.poll())
+                return fresh.state == 'RUNNING'
+
+            _wait('fresh start', fresh_running, 30, log3, sup3)
+            assert 'resumed' not in [e['kind'] for e in fresh_events.events]
+            assert (store / '.previous' / 'integrator').exists()
+    finally:
+        observer.close()

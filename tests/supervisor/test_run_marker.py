@@ -1,0 +1,46 @@
+"""The store's owner and whether its previous run stopped cleanly."""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import pytest
+
+from rory_runtime.supervisor.run_marker import MARKER_NAME, RunMarker, StoreInUseError
+
+
+def test_first_run_then_unclean_then_clean(tmp_path: Path) -> None:
+    store = tmp_path / 'store'
+    first = RunMarker(store)
+    assert first.acquire() is None
+    assert stat.S_IMODE(store.stat().st_mode) == 0o700
+    assert stat.S_IMODE((store / MARKER_NAME).stat().st_mode) == 0o600
+    first.release()  # as if killed: never marked clean
+    second = RunMarker(store)
+    previous = second.acquire()
+    assert previous is not None and previous.clean is False and previous.pid == os.getpid()
+    second.mark_clean()
+    second.release()
+    third = RunMarker(store)
+    previous = third.acquire()
+    assert previous is not None and previous.clean is True and previous.stopped is not None
+    third.release()
+
+
+def test_a_live_owner_keeps_the_store(tmp_path: Path) -> None:
+    owner = RunMarker(tmp_path)
+    owner.acquire()
+    expected = rf'in use by another supervisor \(pid {os.getpid()}\)'
+    with pytest.raises(StoreInUseError, match=expected):
+        RunMarker(tmp_path).acquire()
+    owner.release()
+    RunMarker(tmp_path).acquire()
+
+
+@pytest.mark.parametrize('text', ['', '{', '[]', '{"pid": "x"}', '\xff'])
+def test_an_unreadable_marker_means_unclean(tmp_path: Path, text: str) -> None:
+    (tmp_path / MARKER_NAME).write_text(text, errors='surrogateescape')
+    previous = RunMarker(tmp_path).acquire()
+    assert previous is not None and previous.clean is False

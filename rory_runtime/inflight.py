@@ -27,6 +27,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from .fsutil import make_private_dir
 from .protocol import MessageId
 
 SLOT_SIZE = 256
@@ -57,7 +58,7 @@ class InFlightSlot:
     """The node's side: mark a message busy before its callback, idle after."""
 
     def __init__(self, path: Path, incarnation: int) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        make_private_dir(path.parent)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
         try:
             os.ftruncate(fd, SLOT_SIZE)

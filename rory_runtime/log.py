@@ -187,6 +187,13 @@ class _DurableMcapWriter(McapWriter):
         self.message_end_time = max(log_time, self.message_end_time)
 
 
+def _make_private(folder: Path) -> None:
+    # rosbags creates its files with the process umask; a log is the owner's only.
+    os.chmod(folder, 0o700)
+    for path in folder.iterdir():
+        os.chmod(path, 0o600)
+
+
 class _SegmentBag(Writer):
     """rosbag2 writer using the durable MCAP storage and recording message identities."""
 
@@ -195,9 +202,14 @@ class _SegmentBag(Writer):
     }
 
     def open(self) -> None:
-        """Create the bag directory (mode 0700) and the .mcap file."""
+        """Create the bag directory (mode 0700) and the .mcap file (0600)."""
         super().open()
-        os.chmod(self.path, 0o700)
+        _make_private(self.path)
+
+    def close(self) -> None:
+        """Write the summary and metadata.yaml (0600)."""
+        super().close()
+        _make_private(self.path)
 
     def write_identified(
         self,

@@ -107,8 +107,9 @@ class EventLog:
     """Machine-readable record of what happened: ``<store>/events.jsonl``."""
 
     def __init__(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-        self._file: TextIO = path.open('a', encoding='utf-8')
+        make_private_dir(path.parent)
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+        self._file: TextIO = os.fdopen(fd, 'a', encoding='utf-8')
         self._lock = threading.Lock()
 
     def write(self, kind: str, node: str, **fields: Any) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -106,6 +107,13 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
             sup2.send_signal(signal.SIGINT)
             assert sup2.wait(timeout=30) == 0
         assert json.loads((store / 'supervisor.json').read_text())['clean'] is True
+        # Checkpoints and logs hold the robot's state and all it heard: the owner's only.
+        modes = {p.relative_to(store): stat.S_IMODE(p.stat().st_mode)
+                 for p in [store, *store.rglob('*')]}
+        wrong = {str(p): oct(m) for p, m in modes.items()
+                 if m != (0o700 if (store / p).is_dir() else 0o600)}
+        assert not wrong, wrong
+        assert any(p.suffix == '.mcap' for p in modes) and len(modes) > 10
 
         # After a clean stop the next run starts fresh and sets the old store aside.
         log3 = workdir / 'supervisor-3.log'

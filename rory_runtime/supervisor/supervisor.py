@@ -566,8 +566,13 @@ class Supervisor:
         except ProtocolError as err:
             _logger.warning('%s %s: ignoring malformed status: %s', LOG_PREFIX, node_id, err)
             return
-        if status['node'] == node_id:
-            self.events.put(StatusReceived(node_id, status))
+        if status['node'] != node_id:
+            # Only this node's runtime publishes here; anything else is a misconfigured or
+            # foreign participant and must not steer this node's recovery.
+            _logger.warning('%s %s: ignoring a status that claims to be from %r', LOG_PREFIX,
+                            node_id, status['node'])
+            return
+        self.events.put(StatusReceived(node_id, status))
 
     def make_ring(self, node_id: str) -> Ring:
         """A ring for one node (the shared ring context is created on first use)."""

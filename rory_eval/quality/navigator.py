@@ -63,6 +63,7 @@ class GoalRun:
     cpu_percent: float
     peak_rss_mb: float
     out: Path
+    driven: list[tuple[float, float]]  # ground truth (x, y), 10 Hz
 
     def row(self) -> str:
         """One line of the table."""
@@ -185,7 +186,7 @@ def run_goal(world: str, goal: str, out: Path, *, domain_id: int,
                               '-p', 'use_sim_time:=true', '-r', '/map:=/ground_truth/map',
                               '-p', f'initial_pose_x:={start[0]}',
                               '-p', f'initial_pose_y:={start[1]}',
-                              '-p', f'initial_pose_a:={start[2]}'])
+                              '-p', f'initial_pose_yaw:={start[2]}'])
         run.wait_for['/ground_truth/pose'] = 0
     else:
         run.add_node('localizer', relay_argv(seed + 1))
@@ -238,6 +239,7 @@ def _measure(world: str, goal_name: str, result: Any, figure: bool) -> GoalRun:
         cpu_percent=usage.cpu_percent if usage else math.nan,
         peak_rss_mb=usage.peak_rss_mb if usage else math.nan,
         out=result.out,
+        driven=[(x, y) for _, x, y, _ in truth],
     )
     if figure:
         from sim.render import render_world
@@ -250,6 +252,21 @@ def _measure(world: str, goal_name: str, result: Any, figure: bool) -> GoalRun:
                            f'{"reached" if run.reached else "NOT reached"}, '
                            f'{run.collisions} collisions')
     return run
+
+
+def _world_figure(world: str, runs: Sequence[GoalRun], out: Path) -> None:
+    """Every goal's driven path in one figure of the world."""
+    from sim.render import render_world
+    from sim.worlds import get_world
+
+    if not runs:
+        return
+    reached = sum(r.reached for r in runs)
+    collisions = sum(r.collisions for r in runs)
+    render_world(get_world(world), out / f'navigator_{world}.png',
+                 paths={f'to {r.goal}': r.driven for r in runs}, show_route=False,
+                 title=f'navigator in {world}: {reached}/{len(runs)} goals reached, '
+                       f'{collisions} collisions (driven paths, ground truth)')
 
 
 def _length(points: Sequence[tuple[float, float]]) -> float:
@@ -283,6 +300,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                            seed=args.seed, localization=args.localization)
             runs.append(run)
             print(run.row(), flush=True)
+        _world_figure(world, [r for r in runs if r.world == world], args.out)
     ok = all(r.reached and r.collisions == 0 for r in runs)
     print(f'{sum(r.reached for r in runs)}/{len(runs)} goals reached, '
           f'{sum(r.collisions for r in runs)} collisions; figures in {args.out}/*/')

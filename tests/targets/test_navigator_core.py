@@ -7,7 +7,6 @@ late localization (ground truth + noise at 10 Hz, 40 ms late, as AMCL delivers i
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
@@ -24,6 +23,7 @@ from navigator_costmap import GridMap, InflationParams, build_costmap, distance_
 from navigator_geometry import Pose2D, compose, path_length
 from navigator_localization import PoseTracker
 from navigator_planner import astar, cells_to_points
+from rory_runtime.codec import decode_vars, encode_vars
 from sim.maps import ground_truth_map
 from sim.simulation import Simulation
 from sim.worlds import World, get_world
@@ -294,8 +294,8 @@ def _set(obj: Any, path: str, value: Any) -> None:
 
 
 def test_restoring_the_key_variables_mid_run_continues_exactly() -> None:
-    """A fresh navigator given only the key variables (as RORY restores them) and then the same
-    messages sends exactly the same commands as the one that never stopped."""
+    """A fresh navigator given only the key variables, through RORY's checkpoint codec, and
+    then the same messages sends exactly the same commands as the one that never stopped."""
     paths = _keyvar_paths()
     assert all(p.startswith('core.') for p in paths)
     pillars = [f'pillar_{k}' for k in range(1, 10)]
@@ -308,10 +308,10 @@ def test_restoring_the_key_variables_mid_run_continues_exactly() -> None:
         original = NavigatorCore(NavigatorParams())
         for kind, args, _ in reference.events[:cut]:
             getattr(original, kind)(*args)
+        checkpoint = encode_vars({p: _get(original, p.removeprefix('core.')) for p in paths})
         restored = NavigatorCore(NavigatorParams())
-        for path in paths:
-            _set(restored, path.removeprefix('core.'),
-                 copy.deepcopy(_get(original, path.removeprefix('core.'))))
+        for path, value in decode_vars(checkpoint).items():
+            _set(restored, path.removeprefix('core.'), value)
         for kind, args, expected in reference.events[cut:]:
             got = getattr(restored, kind)(*args)
             if isinstance(expected, Command):

@@ -8,7 +8,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench discovery clean
+.PHONY: demo test lint bench discovery faults clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -33,6 +33,10 @@ bench: $(STAMP)
 # How fast a SIGKILLed and restarted process is heard, per DDS setting.
 discovery: $(STAMP)
 	$(PY) -m rory_eval.discovery --runs 12
+
+# Every fault kind at random moments, some twice; prints runs, correct, lost, twice (~10 min).
+faults: $(STAMP)
+	$(PY) -m rory_eval.fault_campaign --runs 8
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache demo-out

@@ -56,19 +56,33 @@ INTEGRATOR = Program(
 
 @dataclass(frozen=True)
 class Kill:
-    """When to SIGKILL the node: exactly one of the fields is set."""
+    """When to strike the node: exactly one of the time fields is set; ``how`` is the fault.
+
+    ``how``: a signal name (SIGKILL, SIGSEGV, SIGABRT) sent to the node, or ``raise`` /
+    ``hang``, which leave a flag file that a fault-injectable program (rory_eval/flaky) takes
+    before its next message and then raises, or blocks forever.
+    """
 
     after: float | None = None  # seconds after the first number was published
     after_checkpoint: int | None = None  # right after the node reports its k-th checkpoint
     during_recovery: float | None = None  # this long after the replacement starts replaying
+    how: str = 'SIGKILL'
 
     def describe(self) -> str:
         """Short label."""
+        what = '' if self.how == 'SIGKILL' else f'{self.how} '
         if self.after is not None:
-            return f'at {self.after:g} s'
+            return f'{what}at {self.after:g} s'
         if self.after_checkpoint is not None:
-            return f'just after checkpoint {self.after_checkpoint}'
-        return f'{self.during_recovery:g} s into the replay'
+            return f'{what}just after checkpoint {self.after_checkpoint}'
+        return f'{what}{self.during_recovery:g} s into the replay'
+
+    def strike(self, pid: int, workdir: Path) -> None:
+        """Deliver the fault."""
+        if self.how in ('raise', 'hang'):
+            (workdir / f'fault-{self.how}').touch()
+        else:
+            os.kill(pid, signal.Signals[self.how])
 
 
 @dataclass
@@ -312,7 +326,7 @@ def run(
                     if pending and started is not None and tracker.pid is not None:
                         kill = pending[0]
                         if tracker.due(kill, started, now):
-                            os.kill(tracker.pid, signal.SIGKILL)
+                            kill.strike(tracker.pid, workdir)
                             kills_done.append((kill.describe(), now))
                             pending.pop(0)
                             tracker.replaying_since = None

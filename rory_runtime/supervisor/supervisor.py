@@ -317,6 +317,10 @@ class ManagedNode:
             # Died before its release: the same recovery goes on (R keeps recording), and its
             # time still counts from the first crash.
             rec.again(ev.at)
+            # If R was already sealed, what came after the seal went to the relay, and the dead
+            # process may have taken some of it: a new R takes over from the ring's backlog,
+            # minus what the closed R and the logs hold.
+            rec.s2_isolate()
             return
         if rec is not None:
             rec.finish()  # crashed during the handover of an earlier recovery

@@ -1,0 +1,26 @@
+"""The fault campaign's short version: every fault kind, and second strikes during recovery.
+
+Each case strikes the fault-injectable integrator under RORY (SIGKILL, SIGSEGV, SIGABRT, an
+uncaught exception, a hang found by the heartbeat); the node must end with exactly 1..N.
+The full campaign is ``make faults``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from rory_eval.fault_campaign import Case, run_case, short_plan
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.mark.parametrize('case', short_plan(), ids=Case.label)
+def test_fault_is_recovered_exactly(case: Case, tmp_path: Path, ros_domain: int) -> None:
+    outcome = run_case(case, tmp_path / 'run', ros_domain)
+    assert outcome.correct, (
+        f'lost {outcome.lost} ({outcome.missing}), applied twice {outcome.duplicated}, '
+        f'gave up {outcome.gave_up} {outcome.error}'
+    )
+    assert outcome.recoveries == 1  # a second strike during recovery is the same recovery

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+import rclpy.utilities
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Twist
 from nav_msgs.msg import OccupancyGrid, Odometry, Path
 from rclpy.executors import ExternalShutdownException
@@ -192,7 +193,12 @@ class Navigator(Node):
             self.get_logger().warning('/odom: ignored: not a finite pose',
                                       throttle_duration_sec=5.0)
             return
-        command = self.core.on_odometry(stamp_ns(msg.header.stamp), pose)
+        stamp = stamp_ns(msg.header.stamp)
+        if stamp < self.core.tracker.latest_stamp_ns:
+            self.get_logger().warning('/odom: ignored: older than the last odometry (did the '
+                                      'clock jump back?)', throttle_duration_sec=5.0)
+            return
+        command = self.core.on_odometry(stamp, pose)
         if command is not None:
             self._send(command)
         self._after()
@@ -275,7 +281,7 @@ def main(args: list[str] | None = None) -> int:
         pass
     finally:
         node.destroy_node()
-        rclpy.try_shutdown()
+        rclpy.utilities.try_shutdown()
     return 0
 
 

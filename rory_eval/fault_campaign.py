@@ -4,8 +4,9 @@ Each run is the integrator scenario (real supervisor, real node, real publisher 
 a fault-injectable integrator (``rory_eval/flaky``) struck at a random moment by one of:
 SIGKILL, SIGSEGV, SIGABRT (signals from outside), an uncaught exception in its callback, or a
 callback that hangs (found by the heartbeat, then killed). Half the runs strike a second time
-while the replacement is still replaying. A run is correct when the node's final history is
-exactly 1..N: nothing lost, nothing applied twice. The table counts, per fault: runs, correct
+soon after the replacement is spawned (while it starts, restores or replays, or just after its
+release when the restart was quick). A run is correct when the node's final history is exactly
+1..N: nothing lost, nothing applied twice. The table counts, per fault: runs, correct
 recoveries, numbers lost, numbers applied twice and give-ups (a node left FATAL).
 
     python -m rory_eval.fault_campaign                # the full campaign (~10 min here)
@@ -40,16 +41,16 @@ class Case:
 
     fault: str
     at: float  # seconds after the first number
-    second: float | None  # seconds into the replay for a second strike, or None
+    second: float | None  # seconds after the replacement's spawn for a second strike, or None
 
     def kills(self) -> tuple[Kill, ...]:
         first = Kill(after=self.at, how=self.fault)
         if self.second is None:
             return (first,)
-        return (first, Kill(during_recovery=self.second, how=self.fault))
+        return (first, Kill(after_respawn=self.second, how=self.fault))
 
     def label(self) -> str:
-        again = '' if self.second is None else f', again {self.second:.2f} s into the replay'
+        again = '' if self.second is None else f', again {self.second:.2f} s after the respawn'
         return f'{self.fault} at {self.at:.2f} s{again}'
 
 
@@ -74,7 +75,9 @@ def plan(runs_per_fault: int, seed: int) -> list[Case]:
     for fault in FAULTS:
         for i in range(runs_per_fault):
             at = rng.uniform(0.5, COUNT / RATE - 1.5)
-            second = rng.uniform(0.05, 0.6) if i % 2 == 1 else None
+            # From the replacement's start to its release takes about 1.5-2.5 s here (Python,
+            # rclpy, rediscovery, restore, replay): strike anywhere in it.
+            second = rng.uniform(0.1, 2.0) if i % 2 == 1 else None
             cases.append(Case(fault, round(at, 2), None if second is None else round(second, 2)))
     return cases
 
@@ -82,7 +85,7 @@ def plan(runs_per_fault: int, seed: int) -> list[Case]:
 def short_plan() -> list[Case]:
     """CI: every fault once, and a second strike during recovery for two of them."""
     cases = [Case(fault, 2.0, None) for fault in FAULTS]
-    cases += [Case('SIGKILL', 2.5, 0.2), Case('raise', 1.5, 0.1)]
+    cases += [Case('SIGKILL', 2.5, 0.5), Case('raise', 1.5, 0.1)]
     return cases
 
 

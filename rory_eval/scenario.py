@@ -66,6 +66,7 @@ class Kill:
     after: float | None = None  # seconds after the first number was published
     after_checkpoint: int | None = None  # right after the node reports its k-th checkpoint
     during_recovery: float | None = None  # this long after the replacement starts replaying
+    after_respawn: float | None = None  # this long after a replacement process was spawned
     how: str = 'SIGKILL'
 
     def describe(self) -> str:
@@ -75,6 +76,8 @@ class Kill:
             return f'{what}at {self.after:g} s'
         if self.after_checkpoint is not None:
             return f'{what}just after checkpoint {self.after_checkpoint}'
+        if self.after_respawn is not None:
+            return f'{what}{self.after_respawn:g} s after the respawn'
         return f'{what}{self.during_recovery:g} s into the replay'
 
     def strike(self, pid: int, workdir: Path) -> None:
@@ -330,6 +333,7 @@ def run(
                             kills_done.append((kill.describe(), now))
                             pending.pop(0)
                             tracker.replaying_since = None
+                            tracker.respawned_at = None
                     published = pub.poll() is not None
                     # Settled: no news from the node for a while since it last became RUNNING
                     # (a recovered node publishes its state on its 1 Hz timer).
@@ -365,12 +369,15 @@ class _Tracker:
         self.state = ''
         self.checkpoints = 0
         self.replaying_since: float | None = None
+        self.respawned_at: float | None = None
         self.running_since = 0.0
 
     def feed(self, new: list[dict[str, Any]]) -> None:
         for ev in new:
             if ev['kind'] == 'spawn':
                 self.pid = int(ev['pid'])
+                if ev.get('mode') == 'recover':
+                    self.respawned_at = time.monotonic()
             elif ev['kind'] == 'checkpoint':
                 self.checkpoints += 1
             elif ev['kind'] == 'state':
@@ -384,6 +391,9 @@ class _Tracker:
             return now - started >= kill.after
         if kill.after_checkpoint is not None:
             return self.checkpoints >= kill.after_checkpoint
+        if kill.after_respawn is not None:
+            since = self.respawned_at
+            return since is not None and now - since >= kill.after_respawn
         assert kill.during_recovery is not None
         since = self.replaying_since
         return since is not None and now - since >= kill.during_recovery

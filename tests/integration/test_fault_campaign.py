@@ -23,4 +23,7 @@ def test_fault_is_recovered_exactly(case: Case, tmp_path: Path, ros_domain: int)
         f'lost {outcome.lost} ({outcome.missing}), applied twice {outcome.duplicated}, '
         f'gave up {outcome.gave_up} {outcome.error}'
     )
-    assert outcome.recoveries == 1  # a second strike during recovery is the same recovery
+    # The short plan's second strikes land before the release (0.5 s after the respawn is
+    # inside Python's start-up; a raise flag is taken by the first replayed message): one
+    # recovery, whatever number of processes it took.
+    assert outcome.recoveries == 1

@@ -7,7 +7,6 @@ ground-truth map and the pose stays on the true path.
 
 from __future__ import annotations
 
-import copy
 import itertools
 import math
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ from grid_slam_matcher import match
 from grid_slam_occupancy import known_extent, occupancy_values
 from grid_slam_scan import LaserMount, ScanError, scan_to_points
 from rory_eval.metrics import MapScore, map_score, position_errors
+from rory_runtime.codec import decode_vars, encode_vars
 from sim.driver import CONTROL_RATE, RouteFollower
 from sim.maps import OccupancyMap, ground_truth_map
 from sim.sensors import LIDAR
@@ -275,10 +275,11 @@ def test_restoring_the_key_state_and_replaying_gives_the_same_state() -> None:
     rec = drive('real_room')
     original = mapper_for('real_room')
     feed(original, rec, 0, 150)
-    snapshot = {name: copy.deepcopy(getattr(original, name)) for name in KEY_STATE}
+    # A checkpoint as RORY writes it (its codec: data, never pickles), read back.
+    checkpoint = encode_vars({name: getattr(original, name) for name in KEY_STATE})
     feed(original, rec, 150, 300)
     restored = mapper_for('real_room')  # a new process, from the same parameters
-    for name, value in snapshot.items():
+    for name, value in decode_vars(checkpoint).items():
         setattr(restored, name, value)
     feed(restored, rec, 150, 300)
     for name in KEY_STATE:

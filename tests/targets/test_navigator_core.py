@@ -60,11 +60,13 @@ class Drive:
 def drive(world_name: str, goal_name: str, *, seed: int = 0, map_world: World | None = None,
           goal: Pose2D | None = None, time_limit: float = 90.0, noise: float = 0.02,
           localization_every: int = 1, record: bool = False,
-          params: NavigatorParams | None = None) -> Drive:
+          params: NavigatorParams | None = None,
+          new_goal: tuple[float, Pose2D] | None = None) -> Drive:
     """Navigate in a synchronous simulation until REACHED/FAILED (+1 s) or the time limit.
 
     ``localization_every`` n: only every n-th localization pose is delivered (odometry alone
     carries the pose in between). ``record`` keeps every input and its output, in order.
+    ``new_goal`` (t, goal): a second goal sent at sim time t.
     """
     world = get_world(world_name)
     sim = Simulation(world, seed, depth=False)
@@ -89,6 +91,9 @@ def drive(world_name: str, goal_name: str, *, seed: int = 0, map_world: World | 
     scans = 0
     while sim.time < time_limit:
         frame = sim.step()
+        if new_goal is not None and sim.time >= new_goal[0]:
+            feed('on_goal', frame.stamp_ns, new_goal[1])
+            new_goal = None
         if frame.odom_due:
             o = sim.odometry
             command = feed('on_odometry', frame.stamp_ns, Pose2D(o.x, o.y, o.yaw))
@@ -241,6 +246,17 @@ def test_an_obstacle_missing_from_the_map_is_seen_and_planned_around() -> None:
     assert run.sim.collisions.events == []
     assert run.core.plans_made >= 2
     assert len(run.core.seen_cells) > 0
+
+
+def test_a_new_goal_on_the_way_is_planned_to_and_reached() -> None:
+    world = get_world('office_small')
+    second = world.goals['open_office']
+    run = drive('office_small', 'storage', new_goal=(8.0, Pose2D(second.x, second.y, second.yaw)))
+    assert run.core.status == Status.REACHED and run.core.plans_made == 2
+    assert run.core.goal == Pose2D(second.x, second.y, second.yaw)
+    pose = run.sim.pose()
+    assert math.hypot(pose.x - second.x, pose.y - second.y) < 0.15
+    assert run.sim.collisions.events == []
 
 
 def test_an_unreachable_goal_fails_after_recoveries_and_stops() -> None:

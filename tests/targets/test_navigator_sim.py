@@ -42,6 +42,7 @@ def test_the_goal_is_reached_without_collision(tmp_path: Path, ros_domain: int, 
                    figure=False)
     log = (run.out / 'navigator.log').read_text()
     assert run.reached, f'{run.statuses}\n{log[-2000:]}'
+    assert run.statuses[-3:] == ['PLANNING', 'FOLLOWING', 'REACHED']
     assert run.collisions == 0
     assert run.position_error < 0.15 and run.yaw_error < 0.2
     assert run.time_to_goal is not None and run.time_to_goal < duration

@@ -446,9 +446,10 @@ def _real_room() -> World:
         *walls('wall_south', (0.0, 0.0), (5.0, 0.0)),
         *walls('wall_north', (0.0, 4.0), (5.0, 4.0)),
         *walls('wall_east', (5.0, 0.0), (5.0, 4.0)),
-        # The west wall has a (closed) door: a recess with the door leaf 10 cm behind.
+        # The west wall has a (closed) door: a recess the wall's depth (10 cm), the leaf flush
+        # with the wall's outer face so that no gap joins the room to the outside.
         *walls('wall_west', (0.0, 0.0), (0.0, 4.0), doors=[(2.9, 0.9)]),
-        Box('door_leaf', -0.15, 2.9, 0.05, 1.0, 2.0, kind='wall'),
+        Box('door_leaf', -0.075, 2.9, 0.05, 1.0, 2.0, kind='wall'),
         Box('radiator', 2.5, 0.11, 1.2, 0.12, 0.6, kind='wall'),
         Box('corner_column', 4.8, 3.8, 0.3, 0.3, WALL_HEIGHT, kind='wall'),
         # The one obstacle.

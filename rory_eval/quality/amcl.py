@@ -22,6 +22,7 @@ error over time, every world). ``rory_eval.quality.lama_local`` reuses this mach
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import sys
 from collections.abc import Sequence
@@ -322,17 +323,21 @@ def evaluate(spec: LocalizerSpec, argv: Sequence[str] | None = None) -> int:
                                      description=f'Quality of targets/{spec.name}')
     parser.add_argument('--worlds', nargs='+', default=list(WORLDS), choices=WORLDS)
     parser.add_argument('--out', type=Path, default=Path(f'quality-out/{spec.name}'))
-    parser.add_argument('--domain', type=int, default=180, help='ROS_DOMAIN_ID of the runs')
+    parser.add_argument('--domain', type=int, default=190,
+                        help='ROS_DOMAIN_ID of the first run; each run takes the next one')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--no-navigation', action='store_true',
                         help='only the route runs')
     args = parser.parse_args(argv)
     out: Path = args.out
+    # Each run gets a domain of its own: a latched /goal_pose of an earlier run in this process
+    # was seen reaching the next run's navigator on a shared domain.
+    domains = itertools.count(args.domain)
     routes: list[RouteQuality] = []
     print(ROUTE_HEADER)
     print(ROUTE_UNITS, flush=True)
     for world in args.worlds:
-        q = run_route(spec, world, out / f'route_{world}', domain_id=args.domain,
+        q = run_route(spec, world, out / f'route_{world}', domain_id=next(domains),
                       seed=args.seed)
         routes.append(q)
         route_figure(spec, q, out)
@@ -343,8 +348,8 @@ def evaluate(spec: LocalizerSpec, argv: Sequence[str] | None = None) -> int:
         print()
         print(NAV_HEADER, flush=True)
         for world in args.worlds:
-            n = run_navigation(spec, world, out / f'navigation_{world}', domain_id=args.domain,
-                               seed=args.seed)
+            n = run_navigation(spec, world, out / f'navigation_{world}',
+                               domain_id=next(domains), seed=args.seed)
             navigations.append(n)
             navigation_figure(spec, n, out)
             print(n.row(), flush=True)

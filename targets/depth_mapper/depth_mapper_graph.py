@@ -49,28 +49,8 @@ def edge_error(pose_i: FloatArray, pose_j: FloatArray, measurement: FloatArray) 
     return np.array([c * dx + s * dy, -s * dx + c * dy, wrap(float(rel[2] - measurement[2]))])
 
 
-def _jacobians(pose_i: FloatArray, pose_j: FloatArray, measurement: FloatArray
-               ) -> tuple[FloatArray, FloatArray]:
-    ci, si = math.cos(pose_i[2]), math.sin(pose_i[2])
-    a = pose_i[2] + measurement[2]
-    ca, sa = math.cos(a), math.sin(a)
-    m = np.array([[ca, sa], [-sa, ca]])  # R(-(yaw_i + yaw_z))
-    cz, sz = math.cos(measurement[2]), math.sin(measurement[2])
-    rz_t = np.array([[cz, sz], [-sz, cz]])
-    dt = pose_j[:2] - pose_i[:2]
-    d_ri_t = np.array([[-si, ci], [-ci, -si]])  # d R(yaw_i)^T / d yaw_i
-    jac_i = np.zeros((3, 3))
-    jac_j = np.zeros((3, 3))
-    jac_i[:2, :2] = -m
-    jac_i[:2, 2] = rz_t @ d_ri_t @ dt
-    jac_i[2, 2] = -1.0
-    jac_j[:2, :2] = m
-    jac_j[2, 2] = 1.0
-    return jac_i, jac_j
-
-
 def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10,
-             tolerance: float = 1e-6) -> FloatArray:
+             tolerance: float = 1e-5) -> FloatArray:
     """The poses ``(k, 3)`` that best satisfy the edges, the first held fixed.
 
     Returns:
@@ -80,21 +60,28 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10,
     k = x.shape[0]
     if k < 2 or not edges:
         return x
+    ii = np.array([e.i for e in edges])
+    jj = np.array([e.j for e in edges])
+    z = np.array([e.measurement for e in edges], dtype=np.float64)
+    omega = np.array([e.information for e in edges], dtype=np.float64)
+    # Block (row, column) indices of the 3 x 3 blocks each edge adds to.
+    offsets = np.arange(3)
+    rows = {a: (3 * idx)[:, None, None] + offsets[None, :, None] for a, idx in
+            (('i', ii), ('j', jj))}
+    cols = {a: (3 * idx)[:, None, None] + offsets[None, None, :] for a, idx in
+            (('i', ii), ('j', jj))}
     for _ in range(iterations):
+        e, jac = batch_errors(x[ii], x[jj], z)
         h = np.zeros((3 * k, 3 * k))
         g = np.zeros(3 * k)
-        for edge in edges:
-            i, j = edge.i, edge.j
-            e = edge_error(x[i], x[j], edge.measurement)
-            jac_i, jac_j = _jacobians(x[i], x[j], edge.measurement)
-            omega = edge.information
-            si, sj = slice(3 * i, 3 * i + 3), slice(3 * j, 3 * j + 3)
-            h[si, si] += jac_i.T @ omega @ jac_i
-            h[si, sj] += jac_i.T @ omega @ jac_j
-            h[sj, si] += jac_j.T @ omega @ jac_i
-            h[sj, sj] += jac_j.T @ omega @ jac_j
-            g[si] += jac_i.T @ omega @ e
-            g[sj] += jac_j.T @ omega @ e
+        for a in ('i', 'j'):
+            ja_t_omega = np.einsum('nba,nbc->nac', jac[a], omega)
+            g_rows = (3 * (ii if a == 'i' else jj))[:, None] + offsets[None, :]
+            np.add.at(g, g_rows, np.einsum('nac,nc->na', ja_t_omega, e))
+            for b in ('i', 'j'):
+                block = np.einsum('nac,ncd->nad', ja_t_omega, jac[b])
+                np.add.at(h, (np.broadcast_to(rows[a], block.shape),
+                              np.broadcast_to(cols[b], block.shape)), block)
         h[:3, :3] += np.eye(3) * ANCHOR_INFORMATION
         try:
             step = -np.linalg.solve(h, g)
@@ -105,6 +92,34 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10,
         if float(np.max(np.abs(step))) < tolerance:
             break
     return x
+
+
+def batch_errors(pi: FloatArray, pj: FloatArray, z: FloatArray
+                  ) -> tuple[FloatArray, dict[str, FloatArray]]:
+    """``edge_error`` and its Jacobians for many edges at once: (n, 3), {i, j: (n, 3, 3)}."""
+    ci, si = np.cos(pi[:, 2]), np.sin(pi[:, 2])
+    dx, dy = pj[:, 0] - pi[:, 0], pj[:, 1] - pi[:, 1]
+    rx, ry = ci * dx + si * dy, -si * dx + ci * dy  # j in i's frame
+    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
+    ex, ey = rx - z[:, 0], ry - z[:, 1]
+    e = np.stack([cz * ex + sz * ey, -sz * ex + cz * ey,
+                  (pj[:, 2] - pi[:, 2] - z[:, 2] + math.pi) % (2.0 * math.pi) - math.pi],
+                 axis=1)
+    a = pi[:, 2] + z[:, 2]
+    ca, sa = np.cos(a), np.sin(a)
+    n = len(pi)
+    jac_i = np.zeros((n, 3, 3))
+    jac_j = np.zeros((n, 3, 3))
+    # d(rx, ry)/d yaw_i = (ry, -rx); rotated into the measurement's frame by R(-yaw_z).
+    jac_i[:, 0, 0], jac_i[:, 0, 1] = -ca, -sa
+    jac_i[:, 1, 0], jac_i[:, 1, 1] = sa, -ca
+    jac_i[:, 0, 2] = cz * ry + sz * (-rx)
+    jac_i[:, 1, 2] = -sz * ry + cz * (-rx)
+    jac_i[:, 2, 2] = -1.0
+    jac_j[:, 0, 0], jac_j[:, 0, 1] = ca, sa
+    jac_j[:, 1, 0], jac_j[:, 1, 1] = -sa, ca
+    jac_j[:, 2, 2] = 1.0
+    return e, {'i': jac_i, 'j': jac_j}
 
 
 def edge_information(yaw_j: float, information: FloatArray) -> FloatArray:

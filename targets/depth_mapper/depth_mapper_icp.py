@@ -59,7 +59,7 @@ class IcpSettings:
     min_pairs: int = 40
     sigma_floor: float = 0.02
     degenerate_sigma: float = 0.01
-    lever: float = 2.0
+    lever: float = 1.0
     converged: float = 1e-4
 
 

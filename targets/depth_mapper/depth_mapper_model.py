@@ -22,8 +22,6 @@ IntArray = npt.NDArray[np.int64]
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)  # voxel indices in [-2^20, 2^20): +-52 km at 5 cm
 _MASK = (1 << _BITS) - 1
-_NEIGHBOURS = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1)
-                        for dz in (-1, 0, 1)], dtype=np.int64)
 
 
 def _keys(index: IntArray) -> IntArray:
@@ -32,7 +30,8 @@ def _keys(index: IntArray) -> IntArray:
     return keys
 
 
-_NEIGHBOUR_DELTAS = _keys(_NEIGHBOURS) - _keys(np.zeros(3, dtype=np.int64))
+_OCTANT = np.array([(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)],
+                   dtype=np.int64)
 
 
 @dataclass(frozen=True)
@@ -155,7 +154,7 @@ class VoxelModel:
         self.hits = np.bincount(np.searchsorted(unique, per_frame), minlength=m).astype(np.int64)
 
     def neighbourhood(self, points: FloatArray, min_hits: int = 1) -> Neighbourhood:
-        """The voxels among the 3 x 3 x 3 around each query point ``(n, 3)``.
+        """Candidate voxels around each query point ``(n, 3)``: the 2 x 2 x 2 nearest it.
 
         The search (the costly part) is done once; ``Neighbourhood.nearest`` then pairs points
         that have moved by less than a voxel with the nearest of these, again and again.
@@ -164,7 +163,14 @@ class VoxelModel:
         if n == 0 or self.keys.size == 0:
             return Neighbourhood(np.full((n, 1), -1, dtype=np.int64),
                                  np.full((n, 1, 3), np.inf))
-        candidates = self.voxel_keys(points)[:, None] + _NEIGHBOUR_DELTAS[None, :]
+        # The 2 x 2 x 2 voxels around the corner of the point's voxel nearest to it: the
+        # nearest voxel point is almost always among them (a point's voxel mean lies within
+        # its voxel), for a third of the cost of all 27.
+        scaled = points / self.voxel_size
+        index = np.floor(scaled).astype(np.int64)
+        side = np.where(scaled - index >= 0.5, 1, -1)
+        corner = index[:, None, :] + _OCTANT[None, :, :] * side[:, None, :]
+        candidates = _keys(corner)
         pos = np.searchsorted(self.keys, candidates)
         pos = np.minimum(pos, self.keys.size - 1)
         found = self.keys[pos] == candidates
@@ -176,7 +182,7 @@ class VoxelModel:
         return Neighbourhood(index, means)
 
     def nearest(self, points: FloatArray, min_hits: int = 1) -> tuple[IntArray, FloatArray]:
-        """The nearest voxel point to each query point among the 27 voxels around it.
+        """The nearest voxel point to each query point among the 8 voxels around it.
 
         Returns:
             ``(index into the model's arrays or -1, distance or inf)``, each (n,).

@@ -131,7 +131,9 @@ class DepthMapperNode(Node):
             self.get_logger().warning(f'{self.odom_sub.topic_name}: non-finite pose; skipped',
                                       throttle_duration_sec=WARN_EVERY)
             return
-        for result in self.mapper.add_odometry(stamp_ns(msg.header.stamp), *pose):
+        stamp = stamp_ns(msg.header.stamp)
+        self.get_logger().debug(f'odom {stamp}')
+        for result in self.mapper.add_odometry(stamp, *pose):
             self._frame_done(result)
 
     def on_cloud(self, msg: PointCloud2) -> None:
@@ -146,11 +148,19 @@ class DepthMapperNode(Node):
             self.get_logger().warning(f'{topic}: malformed cloud ({err}); skipped',
                                       throttle_duration_sec=WARN_EVERY)
             return
-        before = self.mapper.counters['stale_frames']
-        results = self.mapper.add_frame(stamp_ns(msg.header.stamp), points)
-        if self.mapper.counters['stale_frames'] != before:
+        counters = self.mapper.counters
+        stale, extrapolated = counters['stale_frames'], counters['extrapolated']
+        stamp = stamp_ns(msg.header.stamp)
+        self.get_logger().debug(f'cloud {stamp}')
+        results = self.mapper.add_frame(stamp, points)
+        if counters['stale_frames'] != stale:
             self.get_logger().warning(f'{topic}: frame not newer than the last one; skipped',
                                       throttle_duration_sec=WARN_EVERY)
+        if counters['extrapolated'] != extrapolated:
+            self.get_logger().warning(
+                f'{self.odom_sub.topic_name}: no odometry up to a frame\'s stamp after '
+                f'{self.mapper.settings.odom_wait_ns / 1e9:.1f} s; extrapolated it',
+                throttle_duration_sec=WARN_EVERY)
         for result in results:
             self._frame_done(result)
 
@@ -177,11 +187,15 @@ class DepthMapperNode(Node):
                 f'{topic}: frame at t={t:.2f} s matched only {result.pairs} model points; '
                 'pose from odometry', throttle_duration_sec=WARN_EVERY)
         self._publish_pose(result)
+        self.get_logger().debug(
+            f'frame {result.stamp_ns}: tracked {result.tracked}, {result.pairs} pairs, '
+            f'keyframe {result.keyframe}, pose {result.pose[0]:.4f} {result.pose[1]:.4f} '
+            f'{result.pose[2]:.5f}')
         c = self.mapper.counters
         if c['frames'] % REPORT_EVERY == 0:
             self.get_logger().info(
                 f'{c["frames"]} frames ({c["tracked"]} tracked), {c["keyframes"]} keyframes, '
-                f'{c["loops"]} loop closures, '
+                f'{c["loops"]} loop closures, {c["relocalised"]} relocalised, '
                 f'{len(self.mapper.model)} voxels; pose ({result.pose[0]:.2f}, '
                 f'{result.pose[1]:.2f}, {result.pose[2]:.2f}) at t={t:.1f} s')
 

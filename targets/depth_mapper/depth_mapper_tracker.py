@@ -16,6 +16,7 @@ the same state. There is no randomness.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -40,7 +41,7 @@ from depth_mapper_geometry import (
     optical_to_base,
     wrap,
 )
-from depth_mapper_icp import IcpSettings, align
+from depth_mapper_icp import IcpResult, IcpSettings, align
 from depth_mapper_model import VoxelModel
 
 F32 = npt.NDArray[np.float32]
@@ -72,6 +73,8 @@ class MapperSettings:
         depth_noise: the camera's depth noise ``a + b (z - 0.4)^2`` (m), ``(a, b)``.
         backend: keyframe linking and loop closing.
         close_loops: look for loop closures (else keyframes only feed the model).
+        relocalise_distance: when tracking fails, pairs this far apart are tried (m)...
+        relocalise_min_pairs: ...and a result with this many pairs is taken.
         calibrate_odometry: learn the odometry's heading error while tracking.
         calibration_yaw_sigma: only frames whose geometry gives the yaw this well (rad)
             teach the calibration.
@@ -95,6 +98,8 @@ class MapperSettings:
     depth_noise: tuple[float, float] = (0.0012, 0.0019)
     backend: BackendSettings = field(default_factory=BackendSettings)
     close_loops: bool = True
+    relocalise_distance: float = 0.5
+    relocalise_min_pairs: int = 150
     calibrate_odometry: bool = True
     calibration_yaw_sigma: float = 0.003
 
@@ -159,7 +164,8 @@ class DepthMapper:
         self.calibration = HeadingCalibration()
         self.yaw_observed = False
         self.counters: dict[str, int] = {'frames': 0, 'tracked': 0, 'keyframes': 0,
-                                         'loops': 0, 'empty_frames': 0, 'stale_frames': 0,
+                                         'loops': 0, 'relocalised': 0, 'extrapolated': 0,
+                                         'empty_frames': 0, 'stale_frames': 0,
                                          'stale_odometry': 0}
 
     # -- inputs ----------------------------------------------------------------------------------
@@ -210,11 +216,20 @@ class DepthMapper:
     # -- one frame ------------------------------------------------------------------------------
 
     def _odometry_at(self, stamp_ns: int) -> tuple[float, float, float] | None:
+        """The odometry pose at a stamp: interpolated, or extrapolated at the last velocity
+        (at most ``odom_wait_ns`` ahead) for a frame that could not wait any longer."""
         if not self.odometry:
             return None
         newest = self.odometry[-1]
         if stamp_ns >= newest[0]:
-            return newest[1:]
+            if stamp_ns == newest[0] or len(self.odometry) < 2:
+                return newest[1:]
+            self.counters['extrapolated'] += 1
+            before = self.odometry[-2]
+            ahead = min(stamp_ns - newest[0], self.settings.odom_wait_ns)
+            p = interpolate(np.array(before[1:]), np.array(newest[1:]),
+                            1.0 + ahead / (newest[0] - before[0]))
+            return float(p[0]), float(p[1]), float(p[2])
         previous = self.odometry[0]
         if stamp_ns <= previous[0]:
             return previous[1:]
@@ -274,6 +289,9 @@ class DepthMapper:
                 sel = self._icp_selection(valid & has_normal, normals)
                 result = align(self.model, base[sel], normals[sel], sigma[sel], prior,
                                information, s.icp)
+                if not result.tracked:
+                    result = self._relocalise(base[sel], normals[sel], sigma[sel], prior,
+                                              information, result)
                 pose, tracked, pairs, rms = result.pose, result.tracked, result.pairs, result.rms
                 yaw_observed = result.yaw_sigma < s.calibration_yaw_sigma
             if self._is_keyframe(pose):
@@ -299,6 +317,22 @@ class DepthMapper:
             self.odom_at_pose = (float(odom[0]), float(odom[1]), float(odom[2]))
         return FrameResult(stamp_ns, self.pose.copy(), tracked, pairs, keyframe, n_valid, rms,
                            first)
+
+    def _relocalise(self, points: FloatArray, normals: FloatArray, sigma: FloatArray,
+                    prior: FloatArray, information: FloatArray, failed: IcpResult) -> IcpResult:
+        """Tracking failed: search wider around the prediction (a glitch in the odometry, a
+        frame lost), coarse to fine, and keep the result only if it fits well."""
+        s = self.settings
+        wide = dataclasses.replace(s.icp, max_distance=s.relocalise_distance, iterations=15)
+        weak = information * 0.01
+        coarse = align(self.model, points, normals, sigma, prior, weak, wide)
+        if not coarse.tracked:
+            return failed
+        fine = align(self.model, points, normals, sigma, coarse.pose, weak, s.icp)
+        if fine.tracked and fine.pairs >= s.relocalise_min_pairs and fine.rms <= s.icp.huber:
+            self.counters['relocalised'] += 1
+            return fine
+        return failed
 
     def _icp_selection(self, usable: npt.NDArray[np.bool_], normals: FloatArray
                        ) -> npt.NDArray[np.bool_]:

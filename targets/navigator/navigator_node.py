@@ -83,8 +83,8 @@ def grid_from_msg(msg: OccupancyGrid) -> tuple[GridMap | None, str]:
 class Navigator(Node):
     """The ROS side of the navigator; its state is ``self.core`` (see keyvars.yaml)."""
 
-    def __init__(self) -> None:
-        super().__init__('navigator')
+    def __init__(self, **node_options: Any) -> None:
+        super().__init__('navigator', **node_options)
         self.params = self._read_parameters()
         self.core = NavigatorCore(self.params)
         goal_qos = LATCHED if self.get_parameter('goal_transient_local').value else VOLATILE_GOAL
@@ -226,9 +226,15 @@ class Navigator(Node):
 
     def _after(self) -> None:
         """Log what the core noted and publish a new plan or status."""
+        log = self.get_logger()
         for level, text in self.core.notes:
-            log = self.get_logger()
-            {'info': log.info, 'warn': log.warning, 'error': log.error}[level](text)
+            # One call site per severity: rclpy refuses a call site whose severity changes.
+            if level == 'error':
+                log.error(text)
+            elif level == 'warn':
+                log.warning(text)
+            else:
+                log.info(text)
         self.core.notes.clear()
         if self.core.plans_made != self._published_plans:
             self._published_plans = self.core.plans_made

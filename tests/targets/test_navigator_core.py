@@ -336,3 +336,23 @@ def test_restoring_the_key_variables_mid_run_continues_exactly() -> None:
                 assert got == expected
         assert restored.status == reference.core.status
         assert np.array_equal(restored.plan, reference.core.plan)
+
+
+def test_node_logs_core_notes_of_every_severity_from_one_place(ros_domain: int) -> None:
+    # rclpy refuses a logging call site whose severity changes between calls; the node
+    # relays notes of all levels (a run of 'no path' recoveries crashed it once).
+    import rclpy
+    from rclpy.context import Context
+
+    import navigator_node
+
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    try:
+        node = navigator_node.Navigator(context=context)
+        for level in ('info', 'warn', 'error', 'info', 'warn'):
+            node.core.notes.append((level, f'a {level} note'))
+            node._after()
+        node.destroy_node()
+    finally:
+        context.try_shutdown()

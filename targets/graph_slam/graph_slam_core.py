@@ -7,7 +7,8 @@ The likelihood field of the recent keyframes is a cache, rebuilt from them when 
 
 Per scan (``add_scan``):
 
-1. the pose at the scan's stamp is predicted from the odometry since the previous scan;
+1. the pose at the scan's stamp is predicted from the odometry since the previous scan,
+   interpolated at the stamp (a scan that arrives ahead of its odometry waits for it);
 2. the scan is matched (Gauss-Newton on a likelihood field) against the last few keyframes,
    which corrects the prediction (the front end);
 3. once the robot has moved ``keyframe_distance`` or turned ``keyframe_angle`` since the last
@@ -104,6 +105,7 @@ class GraphSlamConfig:
         rebuild_threshold: rebuild the grid when a keyframe moved more than this (m) or turned
             more than this over 2 m (rad * 2 m) in an optimisation.
         odometry_max_gap: a scan further than this from any odometry is skipped (s).
+        max_waiting_scans: at most this many scans wait for odometry up to their stamp.
         hit_depth: a return is counted this far behind the measured range (m).
         hit_log_odds / pass_log_odds: the inverse sensor model.
         occupied_above / free_below: probabilities that make a cell occupied / free.
@@ -145,6 +147,7 @@ class GraphSlamConfig:
     optimise_iterations: int = 10
     rebuild_threshold: float = 0.02
     odometry_max_gap: float = 0.25
+    max_waiting_scans: int = 50
     hit_depth: float = 0.02
     hit_log_odds: float = 0.6
     pass_log_odds: float = -0.4
@@ -165,10 +168,20 @@ class LoopClosure:
 
 @dataclass
 class ScanOutcome:
-    """What one scan did (for the node's output and logs; never state)."""
+    """What one scan did (for the node's output and logs; never state).
 
-    pose: FloatArray
-    matched: bool
+    Attributes:
+        stamp_ns: the scan's stamp.
+        pose: the robot's pose in map at the scan (None if skipped).
+        skipped: why the scan was not used ('' if it was).
+        matched: whether scan matching corrected the odometry's prediction.
+        keyframe: the index of the keyframe it became, if it did.
+    """
+
+    stamp_ns: int
+    pose: FloatArray | None = None
+    skipped: str = ''
+    matched: bool = False
     keyframe: int | None = None
     loop_closures: list[LoopClosure] = field(default_factory=list)
     rejected_loops: int = 0
@@ -180,6 +193,10 @@ class ScanOutcome:
 
 class NoOdometryError(LookupError):
     """There is no odometry close enough to a scan's stamp (the message says how far)."""
+
+
+class OutOfOrderError(ValueError):
+    """A message not newer than the one before it on its topic."""
 
 
 class GraphSlam:
@@ -196,6 +213,7 @@ class GraphSlam:
         self.odom_history: deque[OdometrySample] = deque(maxlen=250)  # 5 s at 50 Hz
         self.last_scan_stamp_ns: int | None = None
         self.last_scan_odom: FloatArray | None = None  # odom pose at the previous scan
+        self.waiting_scans: deque[tuple[int, PointArray]] = deque()  # ahead of the odometry
         self.pose: FloatArray | None = None  # current estimate in map
         self.unmatched_since_keyframe = False
         self.keyframes: list[Keyframe] = []
@@ -206,12 +224,17 @@ class GraphSlam:
 
     # -- inputs -----------------------------------------------------------------------------
 
-    def add_odometry(self, stamp_ns: int, x: float, y: float, yaw: float) -> bool:
-        """One odometry pose (odom frame). False (and ignored) if not newer than the last."""
+    def add_odometry(self, stamp_ns: int, x: float, y: float, yaw: float) -> list[ScanOutcome]:
+        """One odometry pose (odom frame); the outcomes of the waiting scans it completes.
+
+        Raises:
+            OutOfOrderError: not newer than the last odometry (ignored).
+        """
         if self.odom_history and stamp_ns <= self.odom_history[-1][0]:
-            return False
+            msg = 'not newer than the last odometry'
+            raise OutOfOrderError(msg)
         self.odom_history.append((stamp_ns, x, y, yaw))
-        return True
+        return self._drain()
 
     def odometry_at(self, stamp_ns: int) -> FloatArray:
         """The odometry pose at ``stamp_ns``, interpolated between the samples around it.
@@ -236,21 +259,52 @@ class GraphSlam:
         while history[k - 1][0] > stamp_ns:
             k -= 1
         a, b = history[k - 1], history[k]
+        nearest = min(stamp_ns - a[0], b[0] - stamp_ns)
+        if nearest > gap:  # a hole in the odometry: interpolating across it is a guess
+            msg = f'nearest odometry is {nearest / 1e9:.3f} s from the scan'
+            raise NoOdometryError(msg)
         f = (stamp_ns - a[0]) / (b[0] - a[0])
         return pose(a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]),
                     a[3] + f * wrap_angle(b[3] - a[3]))
 
-    def add_scan(self, stamp_ns: int, points: PointArray) -> ScanOutcome | None:
-        """Process one scan (points in the base frame). None: skipped (not newer than the
-        previous scan).
+    def add_scan(self, stamp_ns: int, points: PointArray) -> list[ScanOutcome]:
+        """One scan (points in the base frame); the outcomes of the scans processed now.
+
+        A scan newer than the newest odometry waits for odometry up to its stamp (messages of
+        two topics arrive in no guaranteed order, least of all after a stall); this one, and
+        any that waited, are processed as soon as that odometry is in. A scan waits at most
+        ``max_waiting_scans`` scans long (then the oldest is dropped, reported as skipped).
 
         Raises:
-            NoOdometryError: no odometry near the scan's stamp (the scan is skipped; the state
-                is unchanged).
+            OutOfOrderError: not newer than the last scan (ignored).
         """
-        if self.last_scan_stamp_ns is not None and stamp_ns <= self.last_scan_stamp_ns:
-            return None
-        odom = self.odometry_at(stamp_ns)
+        newest = self.waiting_scans[-1][0] if self.waiting_scans else self.last_scan_stamp_ns
+        if newest is not None and stamp_ns <= newest:
+            msg = 'not newer than the last scan'
+            raise OutOfOrderError(msg)
+        self.waiting_scans.append((stamp_ns, points))
+        outcomes = []
+        if len(self.waiting_scans) > self.config.max_waiting_scans:
+            dropped, _ = self.waiting_scans.popleft()
+            outcomes.append(ScanOutcome(dropped, skipped=(
+                f'no odometry up to its stamp ({dropped / 1e9:.2f} s) while '
+                f'{self.config.max_waiting_scans} more scans came')))
+        return outcomes + self._drain()
+
+    def _drain(self) -> list[ScanOutcome]:
+        """Process the waiting scans that odometry has caught up with, oldest first."""
+        outcomes = []
+        while (self.waiting_scans and self.odom_history
+               and self.waiting_scans[0][0] <= self.odom_history[-1][0]):
+            stamp_ns, points = self.waiting_scans.popleft()
+            try:
+                outcomes.append(self._process(stamp_ns, points, self.odometry_at(stamp_ns)))
+            except NoOdometryError as err:
+                outcomes.append(ScanOutcome(stamp_ns, skipped=str(err)))
+        return outcomes
+
+    def _process(self, stamp_ns: int, points: PointArray, odom: FloatArray) -> ScanOutcome:
+        """Track one scan from the odometry at its stamp; add a keyframe and close loops."""
         cfg = self.config
         if self.pose is None or self.last_scan_odom is None:
             start = np.array(cfg.map_start, dtype=np.float64)
@@ -258,7 +312,7 @@ class GraphSlam:
             self.last_scan_odom = odom
             self.last_scan_stamp_ns = stamp_ns
             index = self._add_keyframe(stamp_ns, points, None)
-            return ScanOutcome(self.pose.copy(), False, keyframe=index)
+            return ScanOutcome(stamp_ns, self.pose.copy(), keyframe=index)
         predicted = compose(self.pose, between(self.last_scan_odom, odom))
         self.last_scan_odom = odom
         self.last_scan_stamp_ns = stamp_ns
@@ -273,7 +327,7 @@ class GraphSlam:
         self.pose = predicted
         if not matched:
             self.unmatched_since_keyframe = True
-        outcome = ScanOutcome(self.pose.copy(), matched)
+        outcome = ScanOutcome(stamp_ns, self.pose.copy(), matched=matched)
         last = self.keyframes[-1]
         step = between(last.pose, self.pose)
         if (math.hypot(float(step[0]), float(step[1])) >= cfg.keyframe_distance

@@ -33,7 +33,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 
-from graph_slam_core import GraphSlam, GraphSlamConfig, NoOdometryError, ScanOutcome
+from graph_slam_core import GraphSlam, GraphSlamConfig, OutOfOrderError, ScanOutcome
 from graph_slam_graph import EdgeKind
 from graph_slam_scan import ScanError, scan_to_points
 from graph_slam_se2 import FloatArray
@@ -127,9 +127,12 @@ class GraphSlamNode(Node):
                                       throttle_duration_sec=WARN_EVERY)
             return
         yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
-        if not self.slam.add_odometry(_stamp_ns(msg), float(p.x), float(p.y), yaw):
-            self.get_logger().warning('/odom: a message not newer than the last; ignored',
-                                      throttle_duration_sec=WARN_EVERY)
+        try:
+            outcomes = self.slam.add_odometry(_stamp_ns(msg), float(p.x), float(p.y), yaw)
+        except OutOfOrderError as err:
+            self.get_logger().warning(f'/odom: {err}; ignored', throttle_duration_sec=WARN_EVERY)
+            return
+        self._publish(outcomes)  # scans that were waiting for this odometry
 
     def on_scan(self, msg: LaserScan) -> None:
         """Track the scan, add a keyframe and close loops when due, publish the pose."""
@@ -150,27 +153,35 @@ class GraphSlamNode(Node):
                            throttle_duration_sec=WARN_EVERY)
             return
         try:
-            outcome = self.slam.add_scan(_stamp_ns(msg), points)
-        except NoOdometryError as err:
-            logger.warning(f'/scan: {err}; scan skipped (is /odom published?)',
-                           throttle_duration_sec=WARN_EVERY)
+            outcomes = self.slam.add_scan(_stamp_ns(msg), points)
+        except OutOfOrderError as err:
+            logger.warning(f'/scan: {err}; scan skipped', throttle_duration_sec=WARN_EVERY)
             return
-        if outcome is None:
-            logger.warning('/scan: a scan not newer than the last; skipped',
-                           throttle_duration_sec=WARN_EVERY)
-            return
-        self._report(outcome)
-        self.pose_publisher.publish(self._pose_msg(outcome.pose, msg.header.stamp))
+        self._publish(outcomes)
 
-    def _report(self, outcome: ScanOutcome) -> None:
+    def _publish(self, outcomes: list[ScanOutcome]) -> None:
+        """Publish the pose of each processed scan (stamped with the scan's stamp)."""
+        for outcome in outcomes:
+            if outcome.pose is None:
+                self.get_logger().warning(f'/scan: {outcome.skipped}; scan skipped',
+                                          throttle_duration_sec=WARN_EVERY)
+                continue
+            self._report(outcome, outcome.stamp_ns * 1e-9)
+            self.pose_publisher.publish(self._pose_msg(outcome.pose, outcome.stamp_ns))
+
+    def _report(self, outcome: ScanOutcome, stamp: float) -> None:
         logger = self.get_logger()
         for loop in outcome.loop_closures:
-            logger.info(f'loop closure: keyframe {loop.target} -> {loop.source} '
-                        f'(fitness {loop.fitness:.2f}, constraint {loop.constraint:.2f}, '
-                        f'correction {loop.correction:.3f} m)')
+            logger.info(f'loop closure at t={stamp:.2f} s: keyframe {loop.target} -> '
+                        f'{loop.source} (fitness {loop.fitness:.2f}, constraint '
+                        f'{loop.constraint:.2f}, correction {loop.correction:.3f} m)')
+        if outcome.rejected_loops and outcome.optimisation is None:
+            logger.warning(f'{outcome.rejected_loops} loop closure(s) at t={stamp:.2f} s '
+                           'withdrawn: the graph could not be solved with them')
         if outcome.optimisation is not None:
             opt = outcome.optimisation
-            verdict = 'rejected' if outcome.rejected_loops else 'applied'
+            verdict = ('rejected (an edge left off by more than loop_max_residual)'
+                       if outcome.rejected_loops else 'applied')
             rebuilt = (f', grid rebuilt in {outcome.rebuild_seconds * 1e3:.1f} ms'
                        if outcome.grid_rebuilt else '')
             logger.info(f'optimisation {verdict}: {len(self.slam.keyframes)} keyframes, '
@@ -181,9 +192,9 @@ class GraphSlamNode(Node):
 
     # -- outputs ----------------------------------------------------------------------------
 
-    def _pose_msg(self, pose: FloatArray, stamp: Any) -> PoseStamped:
+    def _pose_msg(self, pose: FloatArray, stamp_ns: int) -> PoseStamped:
         out = PoseStamped()
-        out.header.stamp = stamp
+        out.header.stamp.sec, out.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
         out.header.frame_id = self.map_frame
         _set_pose(out, pose)
         return out

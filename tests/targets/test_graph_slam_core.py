@@ -23,7 +23,12 @@ import numpy as np
 import pytest
 import yaml
 
-from graph_slam_core import GraphSlam, GraphSlamConfig, NoOdometryError, ScanOutcome
+from graph_slam_core import (
+    GraphSlam,
+    GraphSlamConfig,
+    OutOfOrderError,
+    ScanOutcome,
+)
 from graph_slam_graph import Edge, EdgeKind, chi2, edge_errors, information, optimise
 from graph_slam_grid import OccupancyCounts, rebuild, scan_in_map
 from graph_slam_matcher import build_reference, estimate_normals, icp
@@ -94,18 +99,16 @@ def config_for(world_name: str, **changes: Any) -> GraphSlamConfig:
 
 
 def feed(slam: GraphSlam, events: Iterable[Event]) -> list[ScanOutcome]:
-    """Deliver messages as the node's callbacks do; the outcome of every scan."""
+    """Deliver messages as the node's callbacks do; the outcome of every scan processed."""
     outcomes = []
     for event in events:
         if event.odometry is not None:
-            slam.add_odometry(event.stamp_ns, *event.odometry)
+            outcomes += slam.add_odometry(event.stamp_ns, *event.odometry)
         else:
             assert event.ranges is not None
             points = scan_to_points(event.ranges, LIDAR.angle_min, LIDAR.angle_increment,
                                     LIDAR.range_min, LIDAR.range_max, LASER)
-            outcome = slam.add_scan(event.stamp_ns, points)
-            assert outcome is not None
-            outcomes.append(outcome)
+            outcomes += slam.add_scan(event.stamp_ns, points)
     return outcomes
 
 
@@ -129,9 +132,11 @@ def route_run(world_name: str, **changes: Any) -> RouteRun:
     rec = drive(world_name)
     slam = GraphSlam(config_for(world_name, **changes))
     outcomes = feed(slam, rec.events)
-    stamps = [e.stamp_ns for e in rec.events if e.ranges is not None]
-    estimates = [(t * 1e-9, float(o.pose[0]), float(o.pose[1]))
-                 for t, o in zip(stamps, outcomes, strict=True)]
+    assert [o.stamp_ns for o in outcomes] == [e.stamp_ns for e in rec.events
+                                              if e.ranges is not None]
+    assert all(o.pose is not None for o in outcomes)
+    estimates = [(o.stamp_ns * 1e-9, float(o.pose[0]), float(o.pose[1]))
+                 for o in outcomes if o.pose is not None]
     errors = position_errors(estimates, rec.truth)
     score = map_score(estimated_map(slam), ground_truth_map(get_world(world_name)), tolerance=1)
     return RouteRun(slam, outcomes, errors, score)
@@ -373,19 +378,50 @@ def test_scan_conversion_drops_bad_beams_and_refuses_bad_geometry() -> None:
                            10.0, np.zeros(3))
 
 
-def test_scans_without_odometry_or_out_of_order_leave_the_state_alone() -> None:
-    slam = GraphSlam(config_for('real_room'))
+def test_scans_wait_for_their_odometry_and_bad_order_is_refused() -> None:
+    slam = GraphSlam(config_for('real_room', max_waiting_scans=3))
     points = _true_scan('real_room', 0.8, 0.8, 0.0)
-    with pytest.raises(NoOdometryError):
-        slam.add_scan(100_000_000, points)
-    assert slam.pose is None and not slam.keyframes
-    slam.add_odometry(100_000_000, 0.0, 0.0, 0.0)
-    assert not slam.add_odometry(100_000_000, 5.0, 0.0, 0.0)  # not newer: ignored
-    with pytest.raises(NoOdometryError, match=r'1\.900 s'):
-        slam.add_scan(2_000_000_000, points)  # odometry stopped long before the scan
-    assert slam.add_scan(100_000_000, points) is not None
-    assert slam.add_scan(100_000_000, points) is None  # the same stamp again
-    assert len(slam.keyframes) == 1
+    assert slam.add_scan(100_000_000, points) == []  # no odometry yet: it waits
+    assert slam.pose is None and len(slam.waiting_scans) == 1
+    with pytest.raises(OutOfOrderError):
+        slam.add_scan(100_000_000, points)  # the same stamp again
+    (first,) = slam.add_odometry(100_000_000, 0.0, 0.0, 0.0)  # its odometry: processed
+    assert first.stamp_ns == 100_000_000 and first.keyframe == 0
+    assert first.pose is not None and np.allclose(first.pose, [0.8, 0.8, 0.0])
+    with pytest.raises(OutOfOrderError):
+        slam.add_odometry(100_000_000, 5.0, 0.0, 0.0)
+    # three scans ahead of the odometry wait; a fourth pushes the oldest out
+    for k in range(2, 5):
+        assert slam.add_scan(k * 100_000_000, points) == []
+    (dropped,) = slam.add_scan(500_000_000, points)
+    assert dropped.stamp_ns == 200_000_000 and dropped.pose is None
+    assert 'no odometry up to its stamp' in dropped.skipped
+    done = slam.add_odometry(420_000_000, 0.0, 0.0, 0.0)
+    assert [o.stamp_ns for o in done] == [300_000_000, 400_000_000]
+    assert [s for s, _ in slam.waiting_scans] == [500_000_000]
+    # a hole in the odometry: a scan near one end of it is used, one far from both skipped
+    assert slam.add_scan(1_000_000_000, points) == []
+    near, far = slam.add_odometry(2_000_000_000, 0.0, 0.0, 0.0)
+    assert near.stamp_ns == 500_000_000 and near.pose is not None
+    assert far.pose is None and far.skipped == 'nearest odometry is 0.580 s from the scan'
+    assert len(slam.keyframes) == 1 and not slam.waiting_scans
+
+
+def test_scans_ahead_of_their_odometry_give_the_same_map() -> None:
+    # After a stall the executor may hand over a burst of scans before the odometry of the
+    # same period: the scans wait, and the result is the same as in publication order.
+    events = [e for e in drive('office_small').events if e.stamp_ns <= 20_000_000_000]
+    scans_first = []
+    for k in range(0, len(events), 150):  # 3 s bursts, each scan before its odometry
+        burst = events[k:k + 150]
+        scans_first += [e for e in burst if e.ranges is not None]
+        scans_first += [e for e in burst if e.ranges is None]
+    in_order, reordered = GraphSlam(config_for('office_small')), GraphSlam(
+        config_for('office_small'))
+    a, b = feed(in_order, events), feed(reordered, scans_first)
+    assert [(o.stamp_ns, tuple(o.pose)) for o in a if o.pose is not None] == [
+        (o.stamp_ns, tuple(o.pose)) for o in b if o.pose is not None]
+    assert np.array_equal(in_order.grid.hits, reordered.grid.hits)
 
 
 def test_odometry_is_interpolated_at_the_scan_stamp() -> None:
@@ -421,7 +457,7 @@ def _set(root: object, path: str, value: Any) -> None:
 
 
 def _summary(outcomes: list[ScanOutcome]) -> list[tuple[Any, ...]]:
-    return [(tuple(o.pose), o.matched, o.keyframe,
+    return [(o.stamp_ns, tuple(o.pose if o.pose is not None else ()), o.matched, o.keyframe,
              tuple((c.source, c.target) for c in o.loop_closures)) for o in outcomes]
 
 

@@ -17,6 +17,7 @@ in line with tracking since it costs a few milliseconds per keyframe:
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass, field
 
@@ -24,12 +25,20 @@ import numpy as np
 import numpy.typing as npt
 
 from depth_mapper_geometry import between, compose, wrap
-from depth_mapper_graph import Edge, edge_information, optimize
+from depth_mapper_graph import Edge, edge_error, edge_information, optimize
 from depth_mapper_icp import IcpResult, IcpSettings, align
 from depth_mapper_model import VoxelModel
 
 F32 = npt.NDArray[np.float32]
 FloatArray = npt.NDArray[np.float64]
+
+
+class LoopClosure(enum.Enum):
+    """What a loop search at a new keyframe came to."""
+
+    NONE = 'none'  # no candidate, or none that registered well
+    AGREED = 'agreed'  # a loop edge the keyframe poses already satisfied
+    MOVED = 'moved'  # a loop edge that moved the keyframes: rebuild the model
 
 
 @dataclass
@@ -66,6 +75,8 @@ class BackendSettings:
         loop_max_sigma: a loop registration must give x, y (m) and yaw (rad / 10) this well.
         loop_max_rms: and fit this well (m).
         loop_min_pairs: with at least this many pairs.
+        loop_agree_distance: a loop that the keyframe poses already agree with this well (m)...
+        loop_agree_angle: ...and this well (rad) is added without solving the graph.
         track_sigma: standard deviations (x, y, yaw) of a keyframe registration's result, a
             floor for its information: pairs are not independent.
         icp: the registrations' pairing rules.
@@ -79,6 +90,8 @@ class BackendSettings:
     loop_max_sigma: float = 0.02
     loop_max_rms: float = 0.02
     loop_min_pairs: int = 150
+    loop_agree_distance: float = 0.01
+    loop_agree_angle: float = 0.002
     track_sigma: tuple[float, float, float] = (0.01, 0.01, 0.002)
     icp: IcpSettings = field(default_factory=lambda: IcpSettings(max_distance=0.2,
                                                                  iterations=12))
@@ -188,16 +201,17 @@ class Backend:
         self.edges.append(Edge(k - 1, k, measurement,
                                edge_information(float(pose[2]), information)))
 
-    def close_loop(self) -> bool:
-        """Look for a loop at the newest keyframe; on one, solve the graph.
+    def close_loop(self) -> LoopClosure:
+        """Look for a loop at the newest keyframe; on one, add its edge and solve the graph.
 
         Returns:
-            whether the keyframe poses changed (the model must then be rebuilt).
+            NONE, AGREED (an edge the poses already satisfied: nothing solved) or MOVED (the
+            keyframe poses changed: the model must be rebuilt).
         """
         s = self.settings
         k = len(self.keyframes) - 1
         if k < s.loop_min_gap or self.since_loop < s.loop_every:
-            return False
+            return LoopClosure.NONE
         kf = self.keyframes[k]
         best, best_score = -1, math.inf
         for i in range(k - s.loop_min_gap + 1):
@@ -209,35 +223,40 @@ class Backend:
                 if score < best_score:
                     best, best_score = i, score
         if best < 0:
-            return False
+            return LoopClosure.NONE
         lo, hi = max(0, best - 2), min(k - s.loop_min_gap + 1, best + 3)
         model = _window_model(self.keyframes[lo:hi], self.voxel_size)
         weak = np.diag([1.0 / 0.3**2, 1.0 / 0.3**2, 1.0 / 0.1**2])
         result = _register(model, kf, kf.pose, weak, s.icp, s.icp.sigma_floor)
         if not result.tracked or result.pairs < s.loop_min_pairs or result.rms > s.loop_max_rms:
-            return False
+            return LoopClosure.NONE
         try:
             covariance = np.linalg.inv(result.information)
         except np.linalg.LinAlgError:
-            return False
+            return LoopClosure.NONE
         sigmas = np.sqrt(np.maximum(np.diag(covariance), 0.0))
         if sigmas[0] > s.loop_max_sigma or sigmas[1] > s.loop_max_sigma or (
                 sigmas[2] > s.loop_max_sigma / 10.0):
-            return False
+            return LoopClosure.NONE
         anchor = self.keyframes[best]
         information = _floor_information(result.information, s.track_sigma)
-        self.edges.append(Edge(best, k, between(anchor.pose, result.pose),
-                               edge_information(float(result.pose[2]), information), loop=True))
+        edge = Edge(best, k, between(anchor.pose, result.pose),
+                    edge_information(float(result.pose[2]), information), loop=True)
+        self.edges.append(edge)
         self.since_loop = 0
+        residual = edge_error(anchor.pose, kf.pose, edge.measurement)
+        if math.hypot(residual[0], residual[1]) < s.loop_agree_distance and abs(
+                residual[2]) < s.loop_agree_angle:
+            return LoopClosure.AGREED  # the edge stays; there is nothing to solve
         poses = np.array([kf_.pose for kf_ in self.keyframes])
         solved = optimize(poses, self.edges)
         change = np.abs(solved - poses)
         change[:, 2] = np.abs((solved[:, 2] - poses[:, 2] + math.pi) % (2 * math.pi) - math.pi)
         if float(change[:, :2].max()) < 0.005 and float(change[:, 2].max()) < 0.001:
-            return False
+            return LoopClosure.AGREED
         for kf_, pose in zip(self.keyframes, solved, strict=True):
             kf_.pose = pose.copy()
-        return True
+        return LoopClosure.MOVED
 
     def rebuild(self, model: VoxelModel) -> None:
         """Refill ``model`` from every keyframe at its current pose."""

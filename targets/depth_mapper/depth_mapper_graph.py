@@ -64,24 +64,26 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10,
     jj = np.array([e.j for e in edges])
     z = np.array([e.measurement for e in edges], dtype=np.float64)
     omega = np.array([e.information for e in edges], dtype=np.float64)
-    # Block (row, column) indices of the 3 x 3 blocks each edge adds to.
     offsets = np.arange(3)
-    rows = {a: (3 * idx)[:, None, None] + offsets[None, :, None] for a, idx in
-            (('i', ii), ('j', jj))}
-    cols = {a: (3 * idx)[:, None, None] + offsets[None, None, :] for a, idx in
-            (('i', ii), ('j', jj))}
+    base = {'i': 3 * ii, 'j': 3 * jj}
+    size = 3 * k
     for _ in range(iterations):
         e, jac = batch_errors(x[ii], x[jj], z)
-        h = np.zeros((3 * k, 3 * k))
-        g = np.zeros(3 * k)
+        flat_index = []
+        flat_value = []
+        g = np.zeros(size)
         for a in ('i', 'j'):
             ja_t_omega = np.einsum('nba,nbc->nac', jac[a], omega)
-            g_rows = (3 * (ii if a == 'i' else jj))[:, None] + offsets[None, :]
-            np.add.at(g, g_rows, np.einsum('nac,nc->na', ja_t_omega, e))
+            rows = base[a][:, None] + offsets[None, :]
+            g += np.bincount(rows.ravel(), weights=np.einsum('nac,nc->na', ja_t_omega,
+                                                             e).ravel(), minlength=size)
             for b in ('i', 'j'):
                 block = np.einsum('nac,ncd->nad', ja_t_omega, jac[b])
-                np.add.at(h, (np.broadcast_to(rows[a], block.shape),
-                              np.broadcast_to(cols[b], block.shape)), block)
+                cols = base[b][:, None] + offsets[None, :]
+                flat_index.append((rows[:, :, None] * size + cols[:, None, :]).ravel())
+                flat_value.append(block.ravel())
+        h = np.bincount(np.concatenate(flat_index), weights=np.concatenate(flat_value),
+                        minlength=size * size).reshape(size, size)
         h[:3, :3] += np.eye(3) * ANCHOR_INFORMATION
         try:
             step = -np.linalg.solve(h, g)

@@ -28,7 +28,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2, PointField
 
-from depth_mapper_backend import BackendSettings
+from depth_mapper_backend import BackendSettings, LoopClosure
 from depth_mapper_cloud import CloudError, FieldSpec, decode_xyz
 from depth_mapper_geometry import camera_quaternion, yaw_of_quaternion
 from depth_mapper_icp import IcpSettings
@@ -85,7 +85,7 @@ class DepthMapperNode(Node):
         start = np.array([float(p['map_start_x']), float(p['map_start_y']),
                           float(p['map_start_yaw'])])
         self.mapper = DepthMapper(settings, start)
-        # (keyframes, loop closures) the last published model showed: a note, not state.
+        # (keyframes, graph solves) the last published model showed: a note, not state.
         self._published_version = (0, 0)
         self.pose_pub = self.create_publisher(PoseStamped, '~/pose', 10)
         self.cloud_pub = self.create_publisher(PointCloud2, '~/cloud', LATCHED)
@@ -166,7 +166,7 @@ class DepthMapperNode(Node):
 
     def on_timer(self) -> None:
         """Publish the model and the keyframes when a keyframe or a loop changed them."""
-        version = (self.mapper.counters['keyframes'], self.mapper.counters['loops'])
+        version = (self.mapper.counters['keyframes'], self.mapper.counters['graph_solves'])
         if version == self._published_version:
             return
         self._published_version = version
@@ -187,6 +187,12 @@ class DepthMapperNode(Node):
                 f'{topic}: frame at t={t:.2f} s matched only {result.pairs} model points; '
                 'pose from odometry', throttle_duration_sec=WARN_EVERY)
         self._publish_pose(result)
+        if result.loop is not LoopClosure.NONE:
+            moved = ('the map was corrected' if result.loop is LoopClosure.MOVED
+                     else 'the map already agreed')
+            self.get_logger().info(
+                f'loop closure at t={t:.1f} s ({self.mapper.counters["loops"]} so far): '
+                f'{moved}')
         self.get_logger().debug(
             f'frame {result.stamp_ns}: tracked {result.tracked}, {result.pairs} pairs, '
             f'keyframe {result.keyframe}, pose {result.pose[0]:.4f} {result.pose[1]:.4f} '
@@ -195,7 +201,8 @@ class DepthMapperNode(Node):
         if c['frames'] % REPORT_EVERY == 0:
             self.get_logger().info(
                 f'{c["frames"]} frames ({c["tracked"]} tracked), {c["keyframes"]} keyframes, '
-                f'{c["loops"]} loop closures, {c["relocalised"]} relocalised, '
+                f'{c["loops"]} loop closures ({c["graph_solves"]} moved the map), '
+                f'{c["relocalised"]} relocalised, '
                 f'{len(self.mapper.model)} voxels; pose ({result.pose[0]:.2f}, '
                 f'{result.pose[1]:.2f}, {result.pose[2]:.2f}) at t={t:.1f} s')
 

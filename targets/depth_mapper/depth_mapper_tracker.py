@@ -28,6 +28,7 @@ from depth_mapper_backend import (
     Backend,
     BackendSettings,
     Keyframe,
+    LoopClosure,
     downsample,
     integrate_keyframe,
 )
@@ -78,6 +79,8 @@ class MapperSettings:
         calibrate_odometry: learn the odometry's heading error while tracking.
         calibration_yaw_sigma: only frames whose geometry gives the yaw this well (rad)
             teach the calibration.
+        calibration_ridge: how much evidence (squared increments) the calibration needs
+            before it departs from zero.
     """
 
     voxel_size: float = 0.05
@@ -90,8 +93,8 @@ class MapperSettings:
     normal_step: int = 2
     keyframe_distance: float = 0.25
     keyframe_angle: float = math.radians(12.0)
-    odom_sigma_fixed: float = 0.005
-    odom_sigma_per_metre: float = 0.1
+    odom_sigma_fixed: float = 0.002
+    odom_sigma_per_metre: float = 0.03
     odom_sigma_yaw_fixed: float = 0.003
     odom_sigma_yaw_per_radian: float = 0.1
     odom_wait_ns: int = 500_000_000
@@ -102,6 +105,7 @@ class MapperSettings:
     relocalise_min_pairs: int = 150
     calibrate_odometry: bool = True
     calibration_yaw_sigma: float = 0.003
+    calibration_ridge: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -117,6 +121,7 @@ class FrameResult:
         valid_points: pixels with a usable depth.
         rms: point-to-plane residual (m).
         first: the model was empty before this frame (nothing to track against yet).
+        loop: what the keyframe's loop search came to (NONE for other frames).
     """
 
     stamp_ns: int
@@ -127,6 +132,7 @@ class FrameResult:
     valid_points: int
     rms: float
     first: bool
+    loop: LoopClosure = LoopClosure.NONE
 
 
 class DepthMapper:
@@ -161,12 +167,11 @@ class DepthMapper:
         self.odometry: deque[OdometrySample] = deque(maxlen=200)
         self.pending: deque[tuple[int, F32]] = deque(maxlen=10)
         self.backend = Backend(settings.backend, settings.voxel_size)
-        self.calibration = HeadingCalibration()
+        self.calibration = HeadingCalibration(settings.calibration_ridge)
         self.yaw_observed = False
-        self.counters: dict[str, int] = {'frames': 0, 'tracked': 0, 'keyframes': 0,
-                                         'loops': 0, 'relocalised': 0, 'extrapolated': 0,
-                                         'empty_frames': 0, 'stale_frames': 0,
-                                         'stale_odometry': 0}
+        self.counters: dict[str, int] = dict.fromkeys(
+            ('frames', 'tracked', 'keyframes', 'loops', 'graph_solves', 'relocalised',
+             'extrapolated', 'empty_frames', 'stale_frames', 'stale_odometry'), 0)
 
     # -- inputs ----------------------------------------------------------------------------------
 
@@ -275,6 +280,7 @@ class DepthMapper:
         pairs = 0
         rms = 0.0
         keyframe = False
+        loop = LoopClosure.NONE
         pose = prior
         first = len(self.model) == 0
         if n_valid < s.icp.min_pairs:
@@ -300,8 +306,8 @@ class DepthMapper:
                 normal_sums = np.where(has_normal[valid][:, None], normals[valid], 0.0)
                 cloud = downsample(base[valid], normal_sums * weights[:, None], weights,
                                    s.voxel_size)
-                pose = self._add_keyframe(Keyframe(stamp_ns, np.asarray(pose).copy(), odom,
-                                                   *cloud))
+                pose, loop = self._add_keyframe(Keyframe(stamp_ns, np.asarray(pose).copy(),
+                                                         odom, *cloud))
         if tracked:
             self.counters['tracked'] += 1
         if yaw_observed and self.yaw_observed and odom is not None and (
@@ -316,7 +322,7 @@ class DepthMapper:
         if odom is not None:
             self.odom_at_pose = (float(odom[0]), float(odom[1]), float(odom[2]))
         return FrameResult(stamp_ns, self.pose.copy(), tracked, pairs, keyframe, n_valid, rms,
-                           first)
+                           first, loop)
 
     def _relocalise(self, points: FloatArray, normals: FloatArray, sigma: FloatArray,
                     prior: FloatArray, information: FloatArray, failed: IcpResult) -> IcpResult:
@@ -350,7 +356,7 @@ class DepthMapper:
             chosen.flat[keep] = True
         return chosen
 
-    def _add_keyframe(self, kf: Keyframe) -> FloatArray:
+    def _add_keyframe(self, kf: Keyframe) -> tuple[FloatArray, LoopClosure]:
         """Link the keyframe into the graph, fuse it, close a loop; its (new) pose."""
         backend = self.backend
         previous = backend.keyframes[-1] if backend.keyframes else None
@@ -361,10 +367,13 @@ class DepthMapper:
             backend.add(kf, None, None)
         integrate_keyframe(self.model, kf)
         self.counters['keyframes'] += 1
-        if self.settings.close_loops and backend.close_loop():
-            backend.rebuild(self.model)
+        outcome = backend.close_loop() if self.settings.close_loops else LoopClosure.NONE
+        if outcome is not LoopClosure.NONE:
             self.counters['loops'] += 1
-        return kf.pose.copy()
+        if outcome is LoopClosure.MOVED:
+            backend.rebuild(self.model)
+            self.counters['graph_solves'] += 1
+        return kf.pose.copy(), outcome
 
     def _is_keyframe(self, pose: FloatArray) -> bool:
         if not self.backend.keyframes:

@@ -130,8 +130,12 @@ def test_baselines_visibly_lose_state(method: str, tmp_path: Path, ros_domain: i
         # a respawned node starts empty: only numbers after its restart
         assert result.history[0] > 1
     else:
-        # the checkpoint holds the start; what came after it is gone
-        assert result.history[:50] == list(range(1, 51))
+        # the checkpoint holds a start 1..k; what came after it until the restart is gone, and
+        # the node goes on from there (how big k is depends on when the checkpoint fell)
+        history = result.history
+        k = next(i for i, n in enumerate(history) if n != i + 1)
+        assert k > 0
+        assert history[k:] == list(range(history[k], history[k] + len(history) - k))
 
 
 @pytest.mark.parametrize('method', ['restart', 'checkpoint', 'replay', 'rory'])

@@ -11,8 +11,8 @@ in line with tracking since it costs a few milliseconds per keyframe:
   uncertainty, so a loop closure later bends the trajectory there and not elsewhere;
 * it is also registered against old keyframes near its pose (a loop candidate, at least
   ``loop_min_gap`` keyframes back); a registration the geometry pins down in all three
-  directions adds a loop edge, the graph is solved (``depth_mapper_graph``) and the model is
-  rebuilt from the keyframes at their new poses.
+  directions adds a loop edge; unless the keyframe poses already satisfy it, the graph is
+  solved (``depth_mapper_graph``) and the model rebuilt from the keyframes at their new poses.
 """
 
 from __future__ import annotations
@@ -77,8 +77,8 @@ class BackendSettings:
         loop_min_pairs: with at least this many pairs.
         loop_agree_distance: a loop that the keyframe poses already agree with this well (m)...
         loop_agree_angle: ...and this well (rad) is added without solving the graph.
-        track_sigma: standard deviations (x, y, yaw) of a keyframe registration's result, a
-            floor for its information: pairs are not independent.
+        track_sigma: standard deviations (x, y, yaw) below which a keyframe registration is
+            not believed (its information is capped there): pairs are not independent.
         icp: the registrations' pairing rules.
     """
 
@@ -132,6 +132,8 @@ def integrate_keyframe(model: VoxelModel, kf: Keyframe) -> None:
 
 def _register(model: VoxelModel, kf: Keyframe, start: FloatArray, prior_information: FloatArray,
               settings: IcpSettings, sigma_floor: float) -> IcpResult:
+    """Align a keyframe's cloud (its voxels with a consistent, not vertical normal) to
+    ``model`` from ``start``."""
     sums = kf.normal_sums.astype(np.float64)
     length = np.linalg.norm(sums, axis=1)
     usable = (length > 0.5 * kf.weights) & (np.hypot(sums[:, 0], sums[:, 1]) > 0.3 * length)
@@ -141,7 +143,7 @@ def _register(model: VoxelModel, kf: Keyframe, start: FloatArray, prior_informat
                  prior_information, settings)
 
 
-def _floor_information(information: FloatArray, sigma: tuple[float, float, float]
+def _capped_information(information: FloatArray, sigma: tuple[float, float, float]
                        ) -> FloatArray:
     """Cap an information matrix at ``1 / sigma^2`` per axis (by scaling it down)."""
     cap = np.array([1.0 / v**2 for v in sigma])
@@ -192,7 +194,7 @@ class Backend:
                            self.settings.icp, self.settings.icp.sigma_floor)
         if result.tracked:
             pose = result.pose
-            information = _floor_information(result.information, self.settings.track_sigma)
+            information = _capped_information(result.information, self.settings.track_sigma)
             information = information + prior_info
         else:
             pose = prior
@@ -239,7 +241,7 @@ class Backend:
                 sigmas[2] > s.loop_max_sigma / 10.0):
             return LoopClosure.NONE
         anchor = self.keyframes[best]
-        information = _floor_information(result.information, s.track_sigma)
+        information = _capped_information(result.information, s.track_sigma)
         edge = Edge(best, k, between(anchor.pose, result.pose),
                     edge_information(float(result.pose[2]), information), loop=True)
         self.edges.append(edge)

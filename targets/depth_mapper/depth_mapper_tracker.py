@@ -5,9 +5,11 @@ for its constant-velocity motion model):
 
 1. predict the pose from the odometry moved since the last frame (interpolated at the frame's
    stamp; a frame waits, in ``pending``, until odometry at or after its stamp has arrived);
-2. align the frame to the model, point-to-plane ICP seeded and regularised by the prediction;
-3. if the robot has moved far enough from the last keyframe, make this frame a keyframe and
-   fuse all its points into the voxel model.
+2. align the frame to the model, point-to-plane ICP seeded and regularised by the prediction
+   (and, if that finds too few pairs, once more with a wider pairing: relocalisation);
+3. if the robot has moved far enough from the last keyframe, make this frame a keyframe: link
+   it into the pose graph, fuse its cloud into the voxel model, look for a loop
+   (``depth_mapper_backend``).
 
 Every state change comes from ``add_odometry``/``add_frame`` and depends only on their
 arguments (stamps from message headers), so feeding the same messages in the same order gives
@@ -195,7 +197,9 @@ class DepthMapper:
 
         It is processed as soon as odometry at its stamp is in (at once, usually), else it
         waits in ``pending``; a frame that waited ``odom_wait_ns`` for it is processed with
-        the newest odometry there is. Frames not newer than the last one are ignored.
+        the odometry extrapolated at its last velocity. Without any odometry at all, frames
+        are tracked from the model alone, one frame late. Frames not newer than the last one
+        are ignored.
 
         Returns:
             the frames processed by this call, oldest first.

@@ -83,7 +83,7 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10,
                 flat_index.append((rows[:, :, None] * size + cols[:, None, :]).ravel())
                 flat_value.append(block.ravel())
         h = np.bincount(np.concatenate(flat_index), weights=np.concatenate(flat_value),
-                        minlength=size * size).reshape(size, size)
+                        minlength=size * size).reshape(size, size).astype(np.float64)
         h[:3, :3] += np.eye(3) * ANCHOR_INFORMATION
         try:
             step = -np.linalg.solve(h, g)

@@ -150,7 +150,7 @@ class VoxelModel:
             [np.bincount(inverse, weights=p[:, k] * w, minlength=m) for k in range(3)], axis=1)
         self.normal_sums = np.stack(
             [np.bincount(inverse, weights=n[:, k], minlength=m) for k in range(3)], axis=1)
-        self.counts = np.bincount(inverse, weights=w, minlength=m)
+        self.counts = np.bincount(inverse, weights=w, minlength=m).astype(np.float64)
         self.hits = np.bincount(np.searchsorted(unique, per_frame), minlength=m).astype(np.int64)
 
     def neighbourhood(self, points: FloatArray, min_hits: int = 1) -> Neighbourhood:

@@ -4,10 +4,10 @@
   2008), point-to-point where a reference point lies on no line. The reference (points of
   earlier keyframes in the map frame, each with the normal of the surface it lies on) is
   indexed by a grid holding, per cell, the nearest reference point within ``reach``; a
-  correspondence is one lookup. Each iteration solves the 3 x 3 normal equations of
-  ``Σ w (nᵀ (R p + t - q))²`` with Huber weights. The Hessian ``JᵀJ`` says how well the scan
-  pins the pose down: in a featureless corridor its smallest translational eigenvalue is near
-  zero.
+  correspondence is the closest of the four cells' points around the scan point. Each
+  iteration solves the 3 x 3 normal equations of ``Σ w (nᵀ (R p + t - q))²`` with Huber
+  weights. The Hessian ``JᵀJ`` says how well the scan pins the pose down: in a featureless
+  corridor its smallest translational eigenvalue is near zero.
 * ``search``: correlative scan matching (Olson, "Real-time correlative scan matching", ICRA
   2009): every pose on a grid of translations and rotations is scored by the mean value of a
   likelihood field (Thrun et al., Probabilistic Robotics, ch. 6.4, ``exp(-d² / 2 sigma²)``) under
@@ -104,14 +104,32 @@ class Reference:
     resolution: float
 
     def lookup(self, xy: FloatArray) -> IndexArray:
-        """Index of the reference point nearest (the cell of) each map point; -1 if none."""
+        """Index of the reference point nearest each map point; -1 if none within reach.
+
+        The candidates are the nearest points of the four cells whose centres surround the
+        point; the closest of them to the point itself wins. One cell alone would give the
+        point nearest that cell's centre, and point-to-point pairs would then pull the scan
+        onto the cell lattice (a bias of up to half a cell).
+        """
         rows, cols = self.nearest.shape
-        c = np.floor((xy[:, 0] - self.origin_x) / self.resolution).astype(np.int64)
-        r = np.floor((xy[:, 1] - self.origin_y) / self.resolution).astype(np.int64)
-        inside = (c >= 0) & (c < cols) & (r >= 0) & (r < rows)
-        out = np.full(xy.shape[0], -1, dtype=np.int64)
-        out[inside] = self.nearest[r[inside], c[inside]]
-        return out
+        u = (xy[:, 0] - self.origin_x) / self.resolution - 0.5
+        v = (xy[:, 1] - self.origin_y) / self.resolution - 0.5
+        c0 = np.floor(u).astype(np.int64)
+        r0 = np.floor(v).astype(np.int64)
+        best = np.full(xy.shape[0], -1, dtype=np.int64)
+        best_d2 = np.full(xy.shape[0], np.inf)
+        for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
+            r, c = r0 + dr, c0 + dc
+            inside = (c >= 0) & (c < cols) & (r >= 0) & (r < rows)
+            candidate = np.full(xy.shape[0], -1, dtype=np.int64)
+            candidate[inside] = self.nearest[r[inside], c[inside]]
+            found = candidate >= 0
+            q = self.points[np.where(found, candidate, 0)]
+            d2 = np.where(found, (q[:, 0] - xy[:, 0]) ** 2 + (q[:, 1] - xy[:, 1]) ** 2, np.inf)
+            closer = d2 < best_d2
+            best = np.where(closer, candidate, best)
+            best_d2 = np.where(closer, d2, best_d2)
+        return best
 
 
 def build_reference(points: FloatArray, normals: FloatArray,

@@ -180,6 +180,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
             if not bridge.wait_for(needs, args.wait_timeout):
                 log.warning(f'--wait-for {needs}: not all there after {args.wait_timeout} s; '
                             'starting anyway')
+        if args.start_delay:
+            # Latched data (the map, /sim/info) reaches late readers asynchronously: give it
+            # time, so that every run's nodes see the map before the first scan.
+            time.sleep(args.start_delay)
         if args.driver == 'route':
             driver_proc = subprocess.Popen(
                 [sys.executable, '-m', 'sim.driver', '--world', world.name,
@@ -286,6 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument('--wait-for', action='append', metavar='TOPIC[=N]',
                      help='hold the clock at 0 until TOPIC has N subscribers (repeatable)')
     run.add_argument('--wait-timeout', type=_positive, default=30.0)
+    run.add_argument('--start-delay', type=float, default=0.0, metavar='S',
+                     help='after --wait-for, hold the clock at 0 this many more seconds')
     run.set_defaults(run=_cmd_run)
 
     route = sub.add_parser('route', help="drive a world's route without ROS (synchronous)")

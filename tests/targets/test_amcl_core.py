@@ -7,6 +7,7 @@ exactly as the ROS bridge would publish them (same stamps, same noise for a seed
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cache
@@ -323,11 +324,12 @@ def test_keyvars_restore_the_filter_exactly() -> None:
     # must give bit-identical particles and poses: nothing else carries state.
     stream = route_stream('real_room', duration=25.0)
     cut = len(stream.events) // 2
-    original = SimpleNamespace(localizer=make_localizer('real_room', seed=7))
+    original = SimpleNamespace(localizer=make_localizer('real_room', seed=7),
+                               waiting_scans=deque())
     list(feed(original.localizer, stream.events[:cut]))
     paths = _keyvar_paths()
     checkpoint = codec.encode_vars({p: _get(original, p) for p in paths})
-    restored = SimpleNamespace(localizer=AmclLocalizer(
+    restored = SimpleNamespace(waiting_scans=deque(), localizer=AmclLocalizer(
         AmclConfig(), np.random.default_rng(99), (3.0, 2.0, 1.0), START_COV))
     for path, value in codec.decode_vars(checkpoint).items():
         _set(restored, path, value)

@@ -1,0 +1,206 @@
+"""A real target killed under RORY in the simulator: is its output exactly the no-crash one?
+
+The simulator's internal driver makes every sensor message identical from run to run for a
+seed, and the targets are deterministic functions of their input. So a recovery that loses
+nothing and applies nothing twice leaves the target publishing, for every scan after its
+release, *byte for byte* the message it publishes in a run without a crash. This runs the
+target under ``rory supervise`` twice - without a crash, then SIGKILLed at ``--kill-at`` sim
+seconds - records its pose output, and compares the serialized messages stamp by stamp.
+
+    python -m rory_eval.target_crash --target grid_slam --world office_small --kill-at 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from rory_eval.simrun import REPO, SimRun
+
+
+@dataclass(frozen=True)
+class Target:
+    """How to run one target here."""
+
+    name: str
+    node_file: str  # inside targets/<name>/
+    pose_topic: str
+    pose_type: str  # 'PoseStamped' or 'PoseWithCovarianceStamped'
+    argv: Callable[[str], list[str]]  # world -> the node's command line (original script)
+
+
+def _grid_slam(world: str) -> list[str]:
+    from rory_eval.quality.grid_slam import node_argv
+
+    return node_argv(world)
+
+
+def _amcl(world: str) -> list[str]:
+    from rory_eval.quality.amcl import AMCL
+
+    return AMCL.argv(world)
+
+
+def _lama(world: str) -> list[str]:
+    from rory_eval.quality.lama_local import LAMA_LOCAL
+
+    return LAMA_LOCAL.argv(world)
+
+
+TARGETS = {
+    'grid_slam': Target('grid_slam', 'grid_slam_node.py', '/grid_slam/pose', 'PoseStamped',
+                        _grid_slam),
+    'amcl': Target('amcl', 'amcl_node.py', '/amcl_pose', 'PoseWithCovarianceStamped', _amcl),
+    'lama_local': Target('lama_local', 'lama_local_node.py', '/lama_local/pose',
+                         'PoseWithCovarianceStamped', _lama),
+}
+
+
+@dataclass
+class Comparison:
+    """Stamp-by-stamp comparison of the two runs' outputs."""
+
+    reference: int  # messages in the run without a crash
+    crashed: int  # messages in the run with the crash
+    common: int  # stamps in both
+    identical: int  # of those, byte-identical
+    missing_after_release: int  # reference stamps after the release absent from the crash run
+    recovered_ms: float | None
+    first_difference: str = ''
+
+    @property
+    def exact(self) -> bool:
+        """Every common output identical, none missing after the release."""
+        return (self.common > 0 and self.identical == self.common
+                and self.missing_after_release == 0)
+
+
+def run_under_rory(target: Target, world: str, out: Path, *, domain_id: int, duration: float,
+                   kill_at: float | None) -> tuple[dict[int, bytes], list[dict[str, Any]]]:
+    """One run; the serialized pose messages by stamp (ns), and the supervisor's events."""
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from rclpy.serialization import serialize_message
+
+    out.mkdir(parents=True, exist_ok=True)
+    source = REPO / 'targets' / target.name
+    inst = out / 'inst'
+    if not inst.exists():
+        subprocess.run([sys.executable, '-m', 'rory_instrument', str(source), '--vars',
+                        str(source / 'keyvars.yaml'), '-o', str(inst)], check=True,
+                       capture_output=True)
+    argv = target.argv(world)
+    command = ['python', str(inst / target.node_file), *argv[2:]]
+    store = out / 'store'
+    config = out / 'supervise.yaml'
+    # No safe state: /e_stop would stop the simulator's driver and change every later input.
+    config.write_text(yaml.safe_dump({
+        'nodes': [{'name': target.name, 'command': command, 'method': 'rory',
+                   'checkpoint_interval': 2.0, 'replay': 'fast'}],
+        'store': str(store),
+    }))
+    # The clock waits for the node and RORY's ring to subscribe /scan, then one more second
+    # so the latched map reaches the node before the first scan in every run: otherwise the
+    # interleaving of map and scans at start-up differs between runs, and so do the outputs.
+    run = SimRun(world, out / 'run', domain_id=domain_id, duration=duration, depth=False,
+                 wait_for={'/scan': 2}, sim_args=['--start-delay', '1.0'])
+    run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
+                                str(config)])
+    msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped
+    run.record(target.pose_topic, msg_type, qos=1000)
+    killer = None
+    if kill_at is not None:
+        killer = threading.Thread(target=_kill_later,
+                                  args=(out / 'run' / 'sim.log', world, store, kill_at),
+                                  daemon=True)
+        killer.start()
+    result = run.run()
+    if killer is not None:
+        killer.join(timeout=1.0)
+    by_stamp: dict[int, bytes] = {}
+    for msg in result.messages[target.pose_topic]:
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        by_stamp[stamp] = bytes(serialize_message(msg))
+    events_path = store / 'events.jsonl'
+    events = [json.loads(line) for line in events_path.read_text().splitlines() if line.strip()]
+    return by_stamp, events
+
+
+def _kill_later(sim_log: Path, world: str, store: Path, kill_at: float) -> None:
+    deadline = time.monotonic() + 120.0
+    while time.monotonic() < deadline:
+        if sim_log.exists() and f'{world}: running (seed' in sim_log.read_text(errors='replace'):
+            break
+        time.sleep(0.05)
+    time.sleep(kill_at)  # the simulator runs at real-time factor 1
+    events = [json.loads(line) for line in (store / 'events.jsonl').read_text().splitlines()
+              if line.strip()]
+    pid = [e['pid'] for e in events if e['kind'] == 'spawn'][-1]
+    os.kill(pid, signal.SIGKILL)
+
+
+def compare(reference: dict[int, bytes], crashed: dict[int, bytes],
+            events: Sequence[dict[str, Any]]) -> Comparison:
+    """Outputs stamp by stamp; after the release every reference stamp must be there."""
+    common = sorted(set(reference) & set(crashed))
+    identical = [s for s in common if reference[s] == crashed[s]]
+    first = next((s for s in common if reference[s] != crashed[s]), None)
+    recovered = [e for e in events if e['kind'] == 'recovered']
+    missing = 0
+    if recovered and crashed:
+        # From the first output after the release to the crash run's last one, every output of
+        # the reference must be there (the stop may cut the two runs' ends differently).
+        start = _first_after_gap(sorted(crashed))
+        end = max(crashed)
+        missing = sum(1 for s in reference if start <= s <= end and s not in crashed)
+    return Comparison(len(reference), len(crashed), len(common), len(identical), missing,
+                      recovered[0]['total_ms'] if recovered else None,
+                      '' if first is None else f'first difference at stamp {first / 1e9:.2f} s')
+
+
+def _first_after_gap(stamps: list[int]) -> int:
+    """The first stamp after the largest gap (the outage), i.e. the first after the release."""
+    if len(stamps) < 2:
+        return stamps[0] if stamps else 0
+    gaps = [(b - a, b) for a, b in itertools.pairwise(stamps)]
+    return max(gaps)[1]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run both, print the comparison; exit 0 when exact."""
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.target_crash',
+                                     description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--target', choices=sorted(TARGETS), required=True)
+    parser.add_argument('--world', default='office_small')
+    parser.add_argument('--duration', type=float, default=40.0, help='sim seconds')
+    parser.add_argument('--kill-at', type=float, default=15.0, help='sim seconds')
+    parser.add_argument('--domain', type=int, default=200)
+    parser.add_argument('--out', default='target-crash-out')
+    args = parser.parse_args(argv)
+    target = TARGETS[args.target]
+    out = Path(args.out) / f'{args.target}-{args.world}'
+    reference, _ = run_under_rory(target, args.world, out / 'reference', domain_id=args.domain,
+                                  duration=args.duration, kill_at=None)
+    crashed, events = run_under_rory(target, args.world, out / 'crash', domain_id=args.domain,
+                                     duration=args.duration, kill_at=args.kill_at)
+    result = compare(reference, crashed, events)
+    print(json.dumps({'target': args.target, 'world': args.world, 'kill_at': args.kill_at,
+                      'exact': result.exact, **result.__dict__}))
+    return 0 if result.exact else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

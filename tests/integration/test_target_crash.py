@@ -1,0 +1,29 @@
+"""Real targets SIGKILLed under RORY in the simulator publish, after their release, exactly
+(byte for byte) what they publish in a run without a crash."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from rory_eval.target_crash import TARGETS, compare, run_under_rory
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.mark.parametrize(('target', 'world'), [('grid_slam', 'office_small'),
+                                               ('amcl', 'real_room')])
+def test_killed_target_goes_on_exactly_as_without_the_crash(
+    target: str, world: str, tmp_path: Path, ros_domain: int
+) -> None:
+    spec = TARGETS[target]
+    reference, _ = run_under_rory(spec, world, tmp_path / 'reference', domain_id=ros_domain,
+                                  duration=16.0, kill_at=None)
+    crashed, events = run_under_rory(spec, world, tmp_path / 'crash', domain_id=ros_domain,
+                                     duration=16.0, kill_at=6.0)
+    assert [e['code'] for e in events if e['kind'] == 'exit'] == [-9]
+    result = compare(reference, crashed, events)
+    assert result.recovered_ms is not None
+    assert result.common > 80 and result.crashed < result.reference  # outputs muted while down
+    assert result.exact, result

@@ -40,10 +40,23 @@ class Target:
     pose_topic: str
     pose_type: str  # 'PoseStamped' or 'PoseWithCovarianceStamped'
     argv: Callable[[str], list[str]]  # world -> the node's command line (original script)
+    depth: bool = False  # needs the depth camera
 
 
 def _grid_slam(world: str) -> list[str]:
     from rory_eval.quality.grid_slam import node_argv
+
+    return node_argv(world)
+
+
+def _graph_slam(world: str) -> list[str]:
+    from rory_eval.quality.graph_slam import node_argv
+
+    return node_argv(world)
+
+
+def _depth_mapper(world: str) -> list[str]:
+    from rory_eval.quality.depth_mapper import node_argv
 
     return node_argv(world)
 
@@ -63,6 +76,10 @@ def _lama(world: str) -> list[str]:
 TARGETS = {
     'grid_slam': Target('grid_slam', 'grid_slam_node.py', '/grid_slam/pose', 'PoseStamped',
                         _grid_slam),
+    'graph_slam': Target('graph_slam', 'graph_slam_node.py', '/graph_slam/pose', 'PoseStamped',
+                         _graph_slam),
+    'depth_mapper': Target('depth_mapper', 'depth_mapper_node.py', '/depth_mapper/pose',
+                           'PoseStamped', _depth_mapper, depth=True),
     'amcl': Target('amcl', 'amcl_node.py', '/amcl_pose', 'PoseWithCovarianceStamped', _amcl),
     'lama_local': Target('lama_local', 'lama_local_node.py', '/lama_local/pose',
                          'PoseWithCovarianceStamped', _lama),
@@ -114,7 +131,7 @@ def run_under_rory(target: Target, world: str, out: Path, *, domain_id: int, dur
     # The clock waits for the node and RORY's ring to subscribe /scan, then one more second
     # so the latched map reaches the node before the first scan in every run: otherwise the
     # interleaving of map and scans at start-up differs between runs, and so do the outputs.
-    run = SimRun(world, out / 'run', domain_id=domain_id, duration=duration, depth=False,
+    run = SimRun(world, out / 'run', domain_id=domain_id, duration=duration, depth=target.depth,
                  wait_for={'/scan': 2}, sim_args=['--start-delay', '1.0'])
     run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
                                 str(config)])

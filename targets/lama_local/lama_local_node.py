@@ -13,6 +13,7 @@ The algorithm lives in the sibling modules (``lama_local_localizer`` and below),
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,7 @@ from lama_local_matcher import MatcherConfig
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                      reliability=ReliabilityPolicy.RELIABLE)
 WARN_EVERY = 5.0  # seconds between repeats of the same warning
+SCAN_QUEUE = 10  # scans held until odometry reaches their stamp (tf2's message filter does it)
 
 
 def stamp_ns(stamp: Any) -> int:
@@ -76,6 +78,11 @@ class LamaLocalNode(Node):
         )
         self.localizer = LamaLocalizer(config, initial, initial_cov)
         self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, '/lama_local/pose', 10)
+        # Scans whose stamp the odometry has not reached yet (or that came before the map),
+        # oldest first: a scan is matched only with the odometry at its own stamp, so the
+        # result does not depend on whether DDS delivered the scan or the odometry of the same
+        # instant first.
+        self.waiting_scans: deque[LaserScan] = deque(maxlen=SCAN_QUEUE)
         self.map_sub = self.create_subscription(OccupancyGrid, 'map', self.on_map, LATCHED)
         # Sensors: reliable and deep enough to ride out a CPU stall (2 s of each).
         self.odom_sub = self.create_subscription(Odometry, 'odom', self.on_odom, 100)
@@ -122,6 +129,7 @@ class LamaLocalNode(Node):
         self.localizer.set_map(grid)
         self.get_logger().info(f'{topic}: map {grid.width} x {grid.height} at '
                                f'{grid.resolution} m')
+        self._process_ready_scans()
 
     def on_odom(self, msg: Odometry) -> None:
         """Remember the odometry pose at its stamp."""
@@ -137,6 +145,8 @@ class LamaLocalNode(Node):
             self.get_logger().warning(
                 f'{self.odom_sub.topic_name}: stamp older than the last one; skipped',
                 throttle_duration_sec=WARN_EVERY)
+            return
+        self._process_ready_scans()
 
     def on_initial_pose(self, msg: PoseWithCovarianceStamped) -> None:
         """Restart from the given pose."""
@@ -160,6 +170,22 @@ class LamaLocalNode(Node):
                                f'{pose[2]:.2f})')
 
     def on_scan(self, msg: LaserScan) -> None:
+        """Queue the scan; it is matched once the map and the odometry at its stamp are here."""
+        if self.localizer.grid is None:
+            self.get_logger().warning(
+                f'{self.scan_sub.topic_name}: no map yet; scans wait for it '
+                f'(the newest {SCAN_QUEUE} are kept)', throttle_duration_sec=WARN_EVERY)
+        self.waiting_scans.append(msg)
+        self._process_ready_scans()
+
+    def _process_ready_scans(self) -> None:
+        odometry = self.localizer.odometry
+        while self.waiting_scans and self.localizer.grid is not None and odometry and (
+            stamp_ns(self.waiting_scans[0].header.stamp) <= odometry[-1][0]
+        ):
+            self._process_scan(self.waiting_scans.popleft())
+
+    def _process_scan(self, msg: LaserScan) -> None:
         """Match the scan if the robot moved enough; publish the pose at the scan's stamp."""
         topic = self.scan_sub.topic_name
         try:

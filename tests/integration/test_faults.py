@@ -36,8 +36,9 @@ def test_poison_message_is_quarantined_and_the_node_goes_on(
     # nothing else lost, nothing doubled, 77 skipped
     assert result.state['history'] == [n for n in range(1, 151) if n != 77]
     states = [e['new'] for e in result.events if e['kind'] == 'state']
-    # the node was running when the harness stopped it: never FATAL
-    assert states[-3:] == ['RUNNING', 'STOPPING', 'STOPPED'], states
+    # the node was running when the harness stopped it (the stop itself may or may not be in
+    # the events yet): never FATAL
+    assert [s for s in states if s not in ('STOPPING', 'STOPPED')][-1] == 'RUNNING', states
     assert 'FATAL' not in states
 
 

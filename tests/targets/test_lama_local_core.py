@@ -7,6 +7,7 @@ exactly as the ROS bridge would publish them (same stamps, same noise for a seed
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cache
@@ -246,11 +247,12 @@ def test_keyvars_restore_the_localizer_exactly() -> None:
     # identical poses: nothing else carries state.
     stream = route_stream('real_room', duration=25.0)
     cut = len(stream.events) // 2
-    original = SimpleNamespace(localizer=make_localizer('real_room'))
+    original = SimpleNamespace(localizer=make_localizer('real_room'), waiting_scans=deque())
     list(feed(original.localizer, stream.events[:cut]))
     checkpoint = codec.encode_vars({p: _get(original, p) for p in _keyvar_paths()})
-    restored = SimpleNamespace(localizer=LamaLocalizer(LamaConfig(), (3.0, 2.0, 1.0),
-                                                       START_COV))
+    restored = SimpleNamespace(
+        waiting_scans=deque(),
+        localizer=LamaLocalizer(LamaConfig(), (3.0, 2.0, 1.0), START_COV))
     for path, value in codec.decode_vars(checkpoint).items():
         _set(restored, path, value)
     after_original = [e.pose for e in feed(original.localizer, stream.events[cut:])]

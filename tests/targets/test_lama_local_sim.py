@@ -93,6 +93,6 @@ def test_lama_local_survives_bad_input(tmp_path: Path, ros_domain: int) -> None:
     log = result.log('lama_local')
     assert '/bad_map: malformed map (7 cells for a 10 x 10 grid); ignored' in log
     assert '/initialpose: non-finite pose or bad covariance; ignored' in log
-    assert '/scan: no map yet; skipped' in log
+    assert '/scan: no map yet; scans wait for it' in log
     assert 'Traceback' not in log
     assert not result.messages['/lama_local/pose']

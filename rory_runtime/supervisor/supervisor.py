@@ -59,6 +59,11 @@ SYNC_PERIOD = 0.05
 """Seconds between SYNC envelopes until the node answers (DDS discovery of a new process)."""
 
 STOP_GRACE = (3.0, 2.0)
+HELLO_TIMEOUT = 10.0
+"""Seconds a new process may beat without its HELLO reaching the supervisor. Its runtime sends
+HELLO right after its first callback, so a beating node whose HELLO never arrives is one whose
+status writer the supervisor never discovered: only a new process (a new participant) helps."""
+
 HANG_DUMP_GRACE = 0.3
 """Seconds between SIGUSR1 (a hung node prints its threads' stacks) and SIGKILL."""
 
@@ -151,8 +156,10 @@ class ManagedNode:
         self.poison = PoisonGuard(sup.config.store, cfg.name, self.segments)
         self.slot = slot_path(sup.config.store, cfg.name)
         self.spawned_ns = 0
+        self.first_beat_ns: int | None = None
         self.hang_kill_at: float | None = None  # SIGKILL due (SIGUSR1 sent: a stack dump)
         self.hung_for: float | None = None  # how long it had not beaten, once judged hung
+        self.kill_reason: str | None = None  # why the supervisor killed the current process
         self.resumed = False  # first started from the store of a run that did not stop
         self.replay_pub: Publisher = sup.ros_node.create_publisher(
             UInt8MultiArray, protocol.replay_topic(cfg.name), protocol.REPLAY_QOS
@@ -177,8 +184,10 @@ class ManagedNode:
         self.incarnation += 1
         self.hello = None
         self.spawned_ns = time.monotonic_ns()
+        self.first_beat_ns = None
         self.hang_kill_at = None
         self.hung_for = None
+        self.kill_reason = None
         # One nonce per process: a SYNCED that answers any of its SYNCs proves the path.
         self.sync_nonce = random.getrandbits(63)
         self.synced_counts = None
@@ -261,8 +270,8 @@ class ManagedNode:
             return
         self.child = None
         how = describe_exit(ev.code)
-        if self.hung_for is not None:
-            how = f'hung (no heartbeat for {self.hung_for:.1f} s), {how}'
+        if self.kill_reason is not None:
+            how = f'{self.kill_reason}, {how}'
         self.sup.events_log.write('exit', self.id, code=ev.code, incarnation=ev.incarnation)
         if ev.code == 0 and not self.cfg.restart_on_clean_exit:
             self.sm.change_state(NodeState.EXITED, how)
@@ -501,9 +510,15 @@ class ManagedNode:
             limit, since, what = self.cfg.start_timeout, self.spawned_ns, 'start'
         else:
             limit, since, what = self.cfg.hang_timeout, beat, 'heartbeat'
+            if self.first_beat_ns is None:
+                self.first_beat_ns = now_ns
+            if self.hello is None and now_ns - self.first_beat_ns > HELLO_TIMEOUT * 1e9:
+                self._unheard(child, (now_ns - self.first_beat_ns) / 1e9, now)
+                return
         if limit is None or now_ns - since <= limit * 1e9:
             return
         self.hung_for = (now_ns - since) / 1e9
+        self.kill_reason = f'hung (no {what} for {self.hung_for:.1f} s)'
         busy = self.poison.died_on(self.incarnation)
         on = f' while applying {busy.topic} {busy.ident}' if busy is not None else ''
         _logger.error(
@@ -522,6 +537,19 @@ class ManagedNode:
         else:
             self.hang_kill_at = float('inf')
             child.send_signal(signal.SIGKILL)
+
+    def _unheard(self, child: Child, beating_for: float, now: float) -> None:
+        """The process runs but its HELLO never arrived: replace it (a crash, recovered)."""
+        self.kill_reason = f'unheard (no HELLO after {beating_for:.1f} s of running)'
+        _logger.error(
+            '%s %s: pid %d has run %.1f s without its HELLO reaching the supervisor (its '
+            'status publisher was never discovered); replacing it', LOG_PREFIX, self.id,
+            child.pid, beating_for,
+        )
+        self.sup.events_log.write('unheard', self.id, incarnation=self.incarnation,
+                                  beating_s=round(beating_for, 3))
+        self.hang_kill_at = float('inf')
+        child.send_signal(signal.SIGKILL)
 
     def stop(self) -> None:
         """Stop the node's process: SIGINT, then SIGTERM, then SIGKILL."""

@@ -132,3 +132,30 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
             assert (store / '.previous' / 'integrator').exists()
     finally:
         observer.close()
+
+
+def test_a_node_whose_status_is_never_heard_is_replaced_then_given_up(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    # The node runs and beats, but its HELLO goes to a topic the supervisor does not read
+    # (remapped): after HELLO_TIMEOUT it is replaced, and after max_restarts the supervisor
+    # gives up rather than wait forever in STARTING.
+    import yaml
+
+    workdir = tmp_path.resolve()
+    config = prepare(workdir, 'rory', interval=1.0, pace='fast')
+    doc = yaml.safe_load(config.read_text())
+    doc['nodes'][0]['command'] += ['--ros-args', '-r', '/rory/integrator/status:=/elsewhere']
+    doc['nodes'][0]['backoff'] = {'max_restarts': 1}
+    config.write_text(yaml.safe_dump(doc))
+    env = scenario_env(ros_domain)
+    log = workdir / 'supervisor.log'
+    with _process([*SUPERVISE, str(config)], env, workdir, log) as sup:
+        assert sup.wait(timeout=90) == 1  # all nodes ended, FATAL
+    events = [json.loads(line) for line in
+              (workdir / 'store-rory' / 'events.jsonl').read_text().splitlines()]
+    assert [e['kind'] for e in events].count('unheard') == 2
+    reasons = [e['reason'] for e in events if e['kind'] == 'state' and e['new'] == 'CRASHED']
+    assert all(r.startswith('unheard (no HELLO after 1') for r in reasons), reasons
+    states = [e['new'] for e in events if e['kind'] == 'state']
+    assert states[-3:] == ['FATAL', 'STOPPING', 'STOPPED'], states

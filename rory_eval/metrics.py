@@ -139,3 +139,47 @@ def distance_to_geometry(world: World, points: FloatArray) -> FloatArray:
         d = np.where(inside, np.abs(d_in), d_out)
         best = np.minimum(best, d)
     return np.asarray(best, dtype=np.float64)
+
+
+def near(points: FloatArray, reference: FloatArray, radius: float) -> npt.NDArray[np.bool_]:
+    """For each point, whether some reference point lies within ``radius`` (exact).
+
+    The reference is hashed into cubes of side ``radius``; a point's neighbours within the
+    radius are all in the 27 cubes around its own. Each cube's points are taken one "layer"
+    at a time (the k-th point of every cube), so the search stays vectorised however the
+    points cluster.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
+    found = np.zeros(len(p), dtype=bool)
+    if not len(p) or not len(r):
+        return found
+    lo = np.minimum(p.min(axis=0), r.min(axis=0)) - radius
+    span = np.floor((np.maximum(p.max(axis=0), r.max(axis=0)) + radius - lo) / radius) + 3
+
+    def key(cells: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+        return np.asarray((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2],
+                          dtype=np.int64)
+
+    ref_cells = np.floor((r - lo) / radius).astype(np.int64) + 1
+    ref_keys = key(ref_cells)
+    order = np.argsort(ref_keys, kind='stable')
+    ref_keys, r = ref_keys[order], r[order]
+    first = np.searchsorted(ref_keys, ref_keys, side='left')
+    layer = np.arange(len(ref_keys)) - first  # rank of each point within its cube
+    cells = np.floor((p - lo) / radius).astype(np.int64) + 1
+    limit = radius * radius
+    for k in range(int(layer.max()) + 1):
+        in_layer = layer == k
+        keys_k, pts_k = ref_keys[in_layer], r[in_layer]
+        for offset in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).T.reshape(-1, 3):
+            todo = ~found
+            if not todo.any():
+                return found
+            q = key(cells[todo] + offset)
+            at = np.clip(np.searchsorted(keys_k, q), 0, len(keys_k) - 1)
+            hit = keys_k[at] == q
+            d2 = np.sum((pts_k[at] - p[todo]) ** 2, axis=1)
+            idx = np.flatnonzero(todo)
+            found[idx[hit & (d2 <= limit)]] = True
+    return found

@@ -15,7 +15,8 @@ before any node starts. The simulator starts last with ``--wait-for`` so its clo
 until the targets have subscribed (``wait_for``); it then runs ``duration`` sim seconds, writes
 ``summary.json`` and ``path.csv`` and exits. Every process is started in its own session and
 reaped on the way out, also when the run fails. Each node's CPU seconds and peak RSS over the
-simulated part of the run are read from ``/proc`` just before it is stopped.
+simulated part of the run are read from ``/proc`` just before it is stopped, for the node's
+whole process tree (a supervisor and the node it runs count together).
 """
 
 from __future__ import annotations
@@ -58,9 +59,9 @@ class SimRunError(RuntimeError):
 class NodeUsage:
     """What one node process used while the simulation ran."""
 
-    cpu_seconds: float  # user + system, its threads included
+    cpu_seconds: float  # user + system, its threads and its child processes included
     wall_seconds: float
-    peak_rss_mb: float  # VmHWM
+    peak_rss_mb: float  # sum of the VmHWM of the processes alive at the end (an upper bound)
 
     @property
     def cpu_percent(self) -> float:
@@ -150,6 +151,7 @@ class SimRun:
         self._nodes: list[_Node] = []
         self._recordings: dict[str, _Recording] = {}
         self._latched: list[tuple[str, Any]] = []
+        self._once: list[tuple[str, Any, int]] = []
         self._done = False
 
     def add_node(self, name: str, argv: Sequence[str], *, cwd: Path | None = None,
@@ -168,6 +170,14 @@ class SimRun:
         """Publish message reliable + transient local from the start (a goal, an initial pose)."""
         self._latched.append((topic, message))
 
+    def publish_once(self, topic: str, message: Any, *, subscribers: int = 1) -> None:
+        """Publish message once, reliable and volatile, as a person clicking a goal in RViz.
+
+        It goes out when the clock has started and ``subscribers`` readers have matched; a
+        reader that (re)starts later never sees it.
+        """
+        self._once.append((topic, message, subscribers))
+
     def run(self, *, timeout: float | None = None) -> SimRunResult:
         """Start everything, wait for the simulator to finish its duration, stop and reap all."""
         if self._done:
@@ -176,7 +186,8 @@ class SimRun:
         self._done = True
         self.out.mkdir(parents=True, exist_ok=True)
         deadline = time.monotonic() + (timeout or self.duration * 3 + 90.0)
-        recorder = _Recorder(self.domain_id, self._recordings.values(), self._latched)
+        recorder = _Recorder(self.domain_id, self._recordings.values(), self._latched,
+                             self._once)
         sim: subprocess.Popen[bytes] | None = None
         exit_codes: dict[str, int | None] = {}
         try:
@@ -186,8 +197,9 @@ class SimRun:
             self._wait_for_clock(sim, deadline)
             for node in self._nodes:
                 assert node.proc is not None
-                node.start_ticks = _cpu_ticks(node.proc.pid)
+                node.start_ticks = _tree_cpu_ticks(node.proc.pid)
                 node.start_wall = time.monotonic()
+            recorder.publish_once(deadline, self._check_nodes)
             while sim.poll() is None:
                 self._check_nodes()
                 if time.monotonic() > deadline:
@@ -201,9 +213,9 @@ class SimRun:
                 assert node.proc is not None
                 if node.proc.poll() is None:
                     node.usage = NodeUsage(
-                        (_cpu_ticks(node.proc.pid) - node.start_ticks) / _CLK_TCK,
+                        (_tree_cpu_ticks(node.proc.pid) - node.start_ticks) / _CLK_TCK,
                         time.monotonic() - node.start_wall,
-                        _peak_rss_mb(node.proc.pid),
+                        sum(_peak_rss_mb(pid) for pid in _process_tree(node.proc.pid)),
                     )
                 exit_codes[node.name] = node.proc.poll()
             # Let the last outputs arrive before the recorder stops.
@@ -268,7 +280,8 @@ class SimRun:
 class _Recorder:
     """Subscribes (and publishes latched messages) in its own context, spun on a thread."""
 
-    def __init__(self, domain_id: int, recordings: Any, latched: list[tuple[str, Any]]) -> None:
+    def __init__(self, domain_id: int, recordings: Any, latched: list[tuple[str, Any]],
+                 once: list[tuple[str, Any, int]]) -> None:
         # This process joins the run: the same discovery settings as the others.
         env = scenario_env(domain_id)
         os.environ.update({k: v for k, v in env.items() if k.startswith(('FAST', 'ROS_'))})
@@ -284,6 +297,10 @@ class _Recorder:
             pub = self.node.create_publisher(type(message), topic, LATCHED)
             pub.publish(message)
             self._publishers.append(pub)
+        volatile = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.VOLATILE)
+        self._once = [(self.node.create_publisher(type(message), topic, volatile), message, n)
+                      for topic, message, n in once]
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
@@ -300,6 +317,17 @@ class _Recorder:
                     rec.messages.append(msg)
                     rec.times.append(now)
         return on_message
+
+    def publish_once(self, deadline: float, check: Any) -> None:
+        """Send each one-shot message as soon as its readers have matched."""
+        for pub, message, subscribers in self._once:
+            while pub.get_subscription_count() < subscribers:
+                check()
+                if time.monotonic() > deadline:
+                    msg = f'{pub.topic_name}: {subscribers} readers never matched'
+                    raise SimRunError(msg)
+                time.sleep(0.02)
+            pub.publish(message)
 
     def _spin(self) -> None:
         while self.context.ok():
@@ -329,12 +357,38 @@ def _reap(proc: subprocess.Popen[bytes]) -> None:
     proc.wait()
 
 
-def _cpu_ticks(pid: int) -> int:
+def _stat_fields(pid: int) -> list[str]:
     try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+        return Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
     except OSError:
-        return 0
-    return int(fields[11]) + int(fields[12])  # utime, stime
+        return []
+
+
+def _process_tree(root: int) -> list[int]:
+    """root and every live descendant (by each process's parent in /proc)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path('/proc').iterdir():
+        if entry.name.isdigit():
+            fields = _stat_fields(int(entry.name))
+            if fields:
+                children.setdefault(int(fields[1]), []).append(int(entry.name))
+    tree, todo = [], [root]
+    while todo:
+        pid = todo.pop()
+        tree.append(pid)
+        todo.extend(children.get(pid, ()))
+    return tree
+
+
+def _tree_cpu_ticks(root: int) -> int:
+    """CPU ticks of a process tree: each live member's own, plus what the members' reaped
+    children used (a crashed node's time lands in its supervisor's cutime/cstime)."""
+    total = 0
+    for pid in _process_tree(root):
+        fields = _stat_fields(pid)
+        if fields:
+            total += sum(int(f) for f in fields[11:15])  # utime, stime, cutime, cstime
+    return total
 
 
 def _peak_rss_mb(pid: int) -> float:

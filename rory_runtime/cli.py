@@ -1,4 +1,4 @@
-"""The ``rory`` command: ``rory supervise CONFIG.yaml``, ``rory sim ...``."""
+"""The ``rory`` command: ``rory supervise CONFIG.yaml``, ``rory sim ...``, ``rory eval ...``."""
 
 from __future__ import annotations
 
@@ -28,6 +28,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         from sim.cli import main as sim_main
 
         return sim_main(argv[1:])
+    if argv[:1] == ['eval']:
+        # The evaluation (rory_eval/evaluation) is a separate program that drives this one;
+        # nothing in RORY imports it, so it is run, not imported.
+        import subprocess
+
+        return subprocess.call([sys.executable, '-m', 'rory_eval.evaluation', *argv[1:]])
     parser = argparse.ArgumentParser(
         prog='rory', description='Crash recovery with state for ROS 2 nodes.'
     )
@@ -45,6 +51,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     supervise.set_defaults(run=_supervise)
     sub.add_parser('sim', help='the MuJoCo robot worlds bridged to ROS 2 (rory sim --help)',
                    add_help=False)
+    sub.add_parser('eval', help="the paper's Tables I-IV and figures from real runs "
+                                '(rory eval --help)', add_help=False)
     args = parser.parse_args(argv)
 
     logging.basicConfig(

@@ -59,3 +59,16 @@ def test_distance_to_geometry() -> None:
     assert d[0] == pytest.approx(0.1) and d[1] == 0.0
     assert d[2] == pytest.approx(min(0.3, float(world.clearance(np.array([1.0]),
                                                                  np.array([1.0]))[0])))
+
+
+def test_near_is_exact_against_brute_force() -> None:
+    from rory_eval.metrics import near
+
+    rng = np.random.default_rng(3)
+    reference = rng.uniform(0, 1, (400, 3))
+    reference[:50] = reference[0]  # a crowded cube: many points share one
+    points = rng.uniform(-0.1, 1.1, (300, 3))
+    d = np.linalg.norm(points[:, None, :] - reference[None, :, :], axis=2).min(axis=1)
+    for radius in (0.02, 0.05, 0.1):
+        assert np.array_equal(near(points, reference, radius), d <= radius)
+    assert not near(points, np.zeros((0, 3)), 0.05).any()

@@ -1,0 +1,186 @@
+"""What the evaluation runs: targets, worlds, methods, repetitions, crash times.
+
+A *cell* is one target in one world. For each cell and repetition the evaluation makes a
+``bare`` run (the original node, no RORY: the no-crash reference and Table II's baseline) and one
+crash run per method. In the ``overhead_worlds`` it also makes a ``rory`` run without a crash, the
+same workload under RORY, for Table II.
+
+How each kind of target runs, as in the paper's section IV-B:
+
+* mapping (grid_slam, graph_slam) and the 3D model (depth_mapper): the simulator's internal
+  driver drives the world's route, the same every run for a seed; judged by the final map or
+  model.
+* navigation (navigator): the navigator drives to the world's default goal, which is sent
+  *once* (volatile, as RViz's goal tool does), on a ground-truth-plus-noise localizer.
+* localization (amcl, lama_local): the navigator (not supervised) drives to the goal on the
+  target's pose, so a localizer that comes back lost sends the robot astray.
+"""
+
+from __future__ import annotations
+
+import enum
+import random
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+METHODS = ('restart', 'checkpoint', 'replay', 'rory')
+WORLDS = ('office_small', 'workshop', 'real_room')
+BARE = 'bare'  # the reference: the original node, no supervisor
+CRASH_AT = 9.0  # sim s, the paper's crash time
+CHECKPOINT_INTERVAL = 2.0  # s, the paper's interval
+MAPPING_SECONDS = 30.0  # sim s of route for mapping and the 3D model
+# Navigation: time to the world's default goal at ~0.4 m/s, start-up and a margin to settle
+# (rory_eval/quality/navigator.py measured these).
+NAVIGATION_SECONDS = {'office_small': 55.0, 'workshop': 50.0, 'real_room': 30.0}
+
+
+class Kind(enum.StrEnum):
+    """What a target produces, and so how it is judged."""
+
+    MAP = 'map'  # nav_msgs/OccupancyGrid on /map
+    MODEL = 'model'  # sensor_msgs/PointCloud2 3D model
+    NAVIGATION = 'navigation'  # drives the robot to a goal
+    LOCALIZATION = 'localization'  # a pose the navigator drives on
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """One target as the evaluation runs it.
+
+    Attributes:
+        name: the folder under ``targets/``.
+        kind: how it runs and is judged.
+        node_file: its main script, inside the folder.
+        pose_topic: its pose output (the navigator's is its plan's status instead).
+        paper: the program of the paper it stands in for.
+        depth: needs the depth camera.
+        inputs: the topics whose readers the clock waits for (one reader per process that
+            subscribes: the node, and RORY's ring for the methods that log).
+    """
+
+    name: str
+    kind: Kind
+    node_file: str
+    pose_topic: str
+    paper: str
+    depth: bool = False
+    inputs: tuple[str, ...] = ('/scan',)
+
+
+TARGETS: dict[str, TargetSpec] = {
+    t.name: t for t in (
+        TargetSpec('grid_slam', Kind.MAP, 'grid_slam_node.py', '/grid_slam/pose',
+                   'hector_mapping'),
+        TargetSpec('graph_slam', Kind.MAP, 'graph_slam_node.py', '/graph_slam/pose',
+                   'RTAB-Map', inputs=('/scan', '/odom')),
+        TargetSpec('depth_mapper', Kind.MODEL, 'depth_mapper_node.py', '/depth_mapper/pose',
+                   'ORB_SLAM2', depth=True, inputs=('/camera/depth/points', '/odom')),
+        TargetSpec('navigator', Kind.NAVIGATION, 'navigator_node.py', '/navigator/status',
+                   'move_base', inputs=('/scan', '/odom')),
+        TargetSpec('amcl', Kind.LOCALIZATION, 'amcl_node.py', '/amcl_pose', 'AMCL',
+                   inputs=('/scan', '/odom')),
+        TargetSpec('lama_local', Kind.LOCALIZATION, 'lama_local_node.py', '/lama_local/pose',
+                   'LaMa_local', inputs=('/scan', '/odom')),
+    )
+}
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: everything the runner needs, and the key of its record.
+
+    ``method`` is ``bare`` (no RORY, no crash) or one of :data:`METHODS`; ``crash_at`` None means
+    no crash.
+    """
+
+    target: str
+    world: str
+    method: str
+    repetition: int
+    crash_at: float | None
+    duration: float
+    seed: int = 0
+    replay: str = 'fast'
+    interval: float = CHECKPOINT_INTERVAL
+
+    @property
+    def name(self) -> str:
+        """A folder name, unique in one evaluation."""
+        crash = 'nocrash' if self.crash_at is None else f'crash{self.crash_at:.1f}'
+        return f'{self.target}-{self.world}-{self.method}-{crash}-r{self.repetition}'
+
+    @property
+    def spec(self) -> TargetSpec:
+        """The target."""
+        return TARGETS[self.target]
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain data (the runner's command line carries it)."""
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> RunSpec:
+        """Back from :meth:`to_json`."""
+        return cls(**data)
+
+
+def duration_for(target: str, world: str, override: float | None = None) -> float:
+    """Sim seconds of a run: the route's first part for mapping, the goal's time to drive."""
+    if override is not None:
+        return override
+    kind = TARGETS[target].kind
+    if kind in (Kind.NAVIGATION, Kind.LOCALIZATION):
+        return NAVIGATION_SECONDS[world]
+    return MAPPING_SECONDS
+
+
+@dataclass
+class Plan:
+    """The runs of one evaluation, in the order they run."""
+
+    runs: list[RunSpec] = field(default_factory=list)
+
+    def crash_runs(self) -> list[RunSpec]:
+        """The runs with a crash."""
+        return [r for r in self.runs if r.crash_at is not None]
+
+
+def build_plan(targets: Sequence[str], worlds: Sequence[str], methods: Sequence[str], *,
+               repetitions: int, crash_at: float = CRASH_AT, random_crash: bool = False,
+               duration: float | None = None, seed: int = 0, replay: str = 'fast',
+               overhead_worlds: Sequence[str] = ('real_room',)) -> Plan:
+    """Every run, repetition by repetition (a partial evaluation still covers every cell).
+
+    With ``random_crash`` each repetition of a cell draws its crash time uniformly from
+    [2 s, duration - 8 s] (seeded: the same command draws the same times); every method of that
+    repetition crashes at the same time, so they are compared on the same crash.
+    """
+    unknown = [t for t in targets if t not in TARGETS]
+    if unknown:
+        msg = f'unknown target(s) {", ".join(unknown)}; known: {", ".join(TARGETS)}'
+        raise ValueError(msg)
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        msg = f'unknown method(s) {", ".join(bad)}; known: {", ".join(METHODS)}'
+        raise ValueError(msg)
+    draw = random.Random(seed)
+    plan = Plan()
+    for rep in range(repetitions):
+        for target in targets:
+            for world in worlds:
+                seconds = duration_for(target, world, duration)
+                at = draw.uniform(2.0, max(2.0, seconds - 8.0)) if random_crash else crash_at
+                at = round(at, 2)
+                if at >= seconds - 3.0:
+                    msg = f'crash at {at:g} s leaves no time to recover in a {seconds:g} s run'
+                    raise ValueError(msg)
+                # Each repetition is another noise realisation of the simulator (seed + rep).
+                common: dict[str, Any] = {'target': target, 'world': world, 'repetition': rep,
+                                          'duration': seconds, 'seed': seed + rep,
+                                          'replay': replay}
+                plan.runs.append(RunSpec(method=BARE, crash_at=None, **common))
+                if world in overhead_worlds:
+                    plan.runs.append(RunSpec(method='rory', crash_at=None, **common))
+                plan.runs.extend(RunSpec(method=m, crash_at=at, **common) for m in methods)
+    return plan

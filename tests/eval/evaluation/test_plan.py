@@ -1,0 +1,86 @@
+"""The evaluation's plan: which runs, in which order, with which crash times."""
+
+from __future__ import annotations
+
+import pytest
+
+from rory_eval.evaluation.plan import (
+    BARE,
+    MAPPING_SECONDS,
+    METHODS,
+    NAVIGATION_SECONDS,
+    TARGETS,
+    RunSpec,
+    build_plan,
+)
+
+
+def test_every_cell_has_a_reference_and_a_crash_run_per_method() -> None:
+    plan = build_plan(['grid_slam', 'amcl'], ['office_small', 'workshop'], METHODS,
+                      repetitions=2, overhead_worlds=())
+    assert len(plan.runs) == 2 * 2 * 2 * (1 + len(METHODS))
+    for rep in range(2):
+        for target in ('grid_slam', 'amcl'):
+            for world in ('office_small', 'workshop'):
+                cell = [r for r in plan.runs
+                        if (r.target, r.world, r.repetition) == (target, world, rep)]
+                assert [r.method for r in cell] == [BARE, *METHODS]
+                assert cell[0].crash_at is None
+                assert {r.crash_at for r in cell[1:]} == {9.0}  # the paper's crash time
+                assert len({r.seed for r in cell}) == 1  # same noise for all of a cell
+
+
+def test_repetitions_come_last_so_a_partial_run_covers_every_cell() -> None:
+    plan = build_plan(['grid_slam'], ['office_small', 'real_room'], ['rory'], repetitions=3,
+                      overhead_worlds=())
+    assert [r.repetition for r in plan.runs] == [0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2]
+    assert [r.seed for r in plan.runs[::4]] == [0, 1, 2]  # another noise realisation each
+
+
+def test_the_overhead_run_is_rory_without_a_crash_in_the_overhead_worlds_only() -> None:
+    plan = build_plan(['grid_slam'], ['office_small', 'real_room'], ['restart'],
+                      repetitions=1)
+    no_crash = [(r.world, r.method) for r in plan.runs if r.crash_at is None]
+    assert no_crash == [('office_small', BARE), ('real_room', BARE), ('real_room', 'rory')]
+
+
+def test_random_crash_times_are_drawn_per_repetition_and_seeded() -> None:
+    def times(seed: int) -> list[float | None]:
+        plan = build_plan(['grid_slam'], ['office_small'], ['restart', 'rory'],
+                          repetitions=5, random_crash=True, seed=seed, overhead_worlds=())
+        return [r.crash_at for r in plan.crash_runs()]
+
+    first = times(0)
+    assert first == times(0)
+    assert first != times(1)
+    assert first[0::2] == first[1::2]  # both methods of a repetition crash at the same time
+    assert all(t is not None and 2.0 <= t <= MAPPING_SECONDS - 8.0 for t in first)
+    assert len(set(first)) == 5
+
+
+def test_run_lengths_follow_the_target_kind() -> None:
+    plan = build_plan(list(TARGETS), ['workshop'], ['rory'], repetitions=1, overhead_worlds=())
+    lengths = {r.target: r.duration for r in plan.runs}
+    assert lengths['grid_slam'] == lengths['depth_mapper'] == MAPPING_SECONDS
+    assert lengths['navigator'] == lengths['amcl'] == NAVIGATION_SECONDS['workshop']
+
+
+@pytest.mark.parametrize(('kwargs', 'message'), [
+    ({'targets': ['slam9000']}, 'unknown target(s) slam9000'),
+    ({'methods': ['reboot']}, 'unknown method(s) reboot'),
+    ({'crash_at': 28.0}, 'leaves no time to recover'),
+])
+def test_bad_plans_are_refused_with_the_reason(kwargs: dict[str, object],
+                                               message: str) -> None:
+    args: dict[str, object] = {'targets': ['grid_slam'], 'worlds': ['office_small'],
+                               'methods': ['rory'], 'repetitions': 1}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=message.replace('(', r'\(').replace(')', r'\)')):
+        build_plan(**args)  # type: ignore[arg-type]
+
+
+def test_a_spec_goes_through_json_and_names_its_folder() -> None:
+    spec = RunSpec('amcl', 'real_room', 'checkpoint', 3, 9.0, 30.0, seed=3)
+    assert RunSpec.from_json(spec.to_json()) == spec
+    assert spec.name == 'amcl-real_room-checkpoint-crash9.0-r3'
+    assert RunSpec('amcl', 'real_room', BARE, 0, None, 30.0).name.endswith('-nocrash-r0')

@@ -1,0 +1,85 @@
+"""The evaluation's tables: symbols, medians, overhead ratios, CSV."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from rory_eval.evaluation.judge import Verdict
+from rory_eval.evaluation.plan import BARE, RunSpec
+from rory_eval.evaluation.report import (
+    correctness_table,
+    judge_all,
+    overhead_table,
+    recovery_table,
+    steps_table,
+    symbol,
+    write_csv,
+)
+from rory_eval.evaluation.runner import RunRecord
+
+
+def test_symbols_follow_the_paper() -> None:
+    ok, bad, unknown = Verdict(True), Verdict(False), Verdict(None)
+    assert symbol([ok, ok, ok]) == '✓'
+    assert symbol([bad, bad]) == '✗'
+    assert symbol([ok, bad, ok]) == '? 2/3'
+    assert symbol([ok, unknown]) == '✓ 1/1 of 2'
+    assert symbol([unknown]) == 'n/a'
+    assert symbol([]) == ''
+
+
+def _runs(tmp_path: Path) -> list[tuple[RunRecord, Path]]:
+    """grid_slam in office_small: a reference, restart (wrong map), rory (same map), and an
+    overhead pair."""
+    room = np.full((60, 60), -1, dtype=np.int8)
+    room[5:55, 5:55] = 100
+    room[6:54, 6:54] = 0
+    half = room.copy()
+    half[:, :30] = -1
+    runs = []
+    for method, crash, grid, total, cpu, rss in (
+            (BARE, None, room, None, 10.0, 80.0),
+            ('rory', None, room, None, 11.0, 120.0),
+            ('restart', 9.0, half, 1500.0, 0.0, 0.0),
+            ('rory', 9.0, room, 300.0, 0.0, 0.0)):
+        spec = RunSpec('grid_slam', 'office_small', method, 0, crash, 30.0)
+        folder = tmp_path / spec.name
+        folder.mkdir()
+        np.savez_compressed(folder / 'final_map.npz', data=grid, resolution=0.05, origin_x=0.0,
+                            origin_y=0.0)
+        events = [] if total is None else [{
+            'kind': 'recovered', 'total_ms': total, 's1_ms': 1.0, 's2_ms': 2.0,
+            'restart_ms': total - 100.0, 'restore_ms': 50.0, 'sync_ms': 20.0,
+            'replay_ms': 25.0, 's4_ms': 2.0}]
+        runs.append((RunRecord(run=spec.to_json(), events=events, cpu_percent=cpu,
+                               peak_rss_mb=rss), folder))
+    return runs
+
+
+def test_tables_from_records(tmp_path: Path) -> None:
+    runs = _runs(tmp_path)
+    judged = judge_all(runs)
+    assert [(j.record.spec.method, j.verdict.correct) for j in judged] == [
+        ('restart', False), ('rory', True)]
+    table_one = correctness_table(judged, ('restart', 'rory'))
+    assert '| grid_slam (hector_mapping) | ✗ | ✓ |' in table_one
+    assert 'office_small restart | office_small rory' in table_one
+    assert '| grid_slam | 1500 | 300 |' in recovery_table(judged)
+    steps = steps_table(judged)
+    assert '| grid_slam | rory | 1 | 300 | 1 | 2 | 200 | 50 | 45 | 2 |' in steps
+    overhead = overhead_table(runs)
+    assert '| grid_slam | office_small | 1 | 10.0% | 80 MB | 11.0% (1.10x) |' in overhead
+    assert '120 MB (1.50x, +40 MB)' in overhead
+
+
+def test_the_csv_has_a_row_per_run_with_its_verdict(tmp_path: Path) -> None:
+    runs = _runs(tmp_path)
+    write_csv(tmp_path / 'runs.csv', runs, judge_all(runs))
+    with (tmp_path / 'runs.csv').open() as f:
+        rows = list(csv.DictReader(f))
+    assert [(r['method'], r['correct']) for r in rows] == [
+        (BARE, ''), ('rory', ''), ('restart', '0'), ('rory', '1')]
+    assert rows[2]['total_ms'] == '1500.0' and 'coverage=' in rows[2]['measures']

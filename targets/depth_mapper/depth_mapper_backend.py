@@ -232,13 +232,7 @@ class Backend:
         result = _register(model, kf, kf.pose, weak, s.icp, s.icp.sigma_floor)
         if not result.tracked or result.pairs < s.loop_min_pairs or result.rms > s.loop_max_rms:
             return LoopClosure.NONE
-        try:
-            covariance = np.linalg.inv(result.information)
-        except np.linalg.LinAlgError:
-            return LoopClosure.NONE
-        sigmas = np.sqrt(np.maximum(np.diag(covariance), 0.0))
-        if sigmas[0] > s.loop_max_sigma or sigmas[1] > s.loop_max_sigma or (
-                sigmas[2] > s.loop_max_sigma / 10.0):
+        if not pins_pose(result.information, s.loop_max_sigma):
             return LoopClosure.NONE
         anchor = self.keyframes[best]
         information = _capped_information(result.information, s.track_sigma)
@@ -265,3 +259,24 @@ class Backend:
         clouds = [_in_map(kf, kf.pose) for kf in self.keyframes]
         model.rebuild([c[0] for c in clouds], [c[1] for c in clouds],
                       [kf.weights.astype(np.float64) for kf in self.keyframes])
+
+
+def pins_pose(information: npt.NDArray[np.float64], max_sigma: float) -> bool:
+    """Whether a fit's information pins x and y to ``max_sigma`` and yaw to a tenth of it.
+
+    The registration projects out the directions the geometry does not constrain, so its
+    information can be singular; inverting that gives garbage (negative variances that would
+    read as zero). A singular or ill-conditioned matrix does not pin the pose.
+    """
+    if not np.all(np.isfinite(information)):
+        return False
+    eigenvalues = np.linalg.eigvalsh(information)
+    if eigenvalues.min() <= 1e-9 * max(
+            float(eigenvalues.max()), 1e-300):
+        return False
+    variances = np.diag(np.linalg.inv(information))
+    if np.any(variances <= 0.0):
+        return False
+    sigmas = np.sqrt(variances)
+    return bool(sigmas[0] <= max_sigma and sigmas[1] <= max_sigma
+                and sigmas[2] <= max_sigma / 10.0)

@@ -429,3 +429,18 @@ def test_keyframes_hold_their_clouds_and_link_into_the_graph(real_room_run: Rout
     # A backend with nothing to close never moves its keyframes.
     lone = Backend(BackendSettings(), 0.05)
     assert lone.close_loop() is LoopClosure.NONE
+
+
+def test_a_loop_fit_pins_the_pose_only_if_every_direction_is_constrained() -> None:
+    from depth_mapper_backend import pins_pose
+
+    well = np.diag([1.0 / 0.01**2, 1.0 / 0.01**2, 1.0 / 0.0005**2])
+    assert pins_pose(well, 0.02)
+    # A wall ahead: sliding along it (y) is projected out, the information is singular.
+    # Inverting it anyway can give negative variances that would read as "pinned".
+    wall = well.copy()
+    wall[1, :] = wall[:, 1] = 0.0
+    assert not pins_pose(wall, 0.02)
+    loose = np.diag([1.0 / 0.05**2, 1.0 / 0.01**2, 1.0 / 0.0005**2])
+    assert not pins_pose(loose, 0.02)
+    assert not pins_pose(np.full((3, 3), np.nan), 0.02)

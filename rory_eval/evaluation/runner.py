@@ -252,7 +252,8 @@ def _keep(result: SimRunResult, record: RunRecord, target: TargetSpec, pose_topi
     for msg in result.messages.get('/navigator/status', []):
         if not record.statuses or record.statuses[-1] != msg.data:
             record.statuses.append(msg.data)
-    for msg in result.messages.get(pose_topic, []):
+    poses = [] if target.kind == Kind.NAVIGATION else result.messages.get(pose_topic, [])
+    for msg in poses:
         pose = msg.pose.pose if hasattr(msg.pose, 'pose') else msg.pose
         t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         record.poses.append((round(t, 4), round(pose.position.x, 4), round(pose.position.y, 4)))

@@ -123,6 +123,8 @@ def _load_if_done(spec: RunSpec, folder: Path) -> RunRecord | None:
 def execute_plan(plan: Plan, out: Path, *, jobs: int, domain: int, fresh: bool,
                  progress: Progress | None = None) -> list[tuple[RunRecord, Path]]:
     """Run every spec (``jobs`` at a time, each in its own domain); the records in plan order."""
+    # Absolute: the supervisor respawns the node from its own working directory.
+    out = out.resolve()
     inst = out / 'instrumented'
     for target in sorted({r.target for r in plan.runs}):
         instrument(TARGETS[target], inst / target)

@@ -332,7 +332,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if spec.target not in TARGETS:
         print(f'{args.spec}: unknown target {spec.target!r}', file=sys.stderr)
         return 2
-    record = execute(spec, args.out, domain_id=args.domain, instrumented=args.instrumented)
+    record = execute(spec, args.out.resolve(), domain_id=args.domain,
+                     instrumented=args.instrumented.resolve())
     return 1 if record.error else 0
 
 

@@ -15,12 +15,8 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import os
-import signal
 import subprocess
 import sys
-import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +24,7 @@ from typing import Any
 
 import yaml
 
+from rory_eval.evaluation.runner import Killer
 from rory_eval.simrun import REPO, SimRun
 
 
@@ -139,13 +136,13 @@ def run_under_rory(target: Target, world: str, out: Path, *, domain_id: int, dur
     run.record(target.pose_topic, msg_type, qos=1000)
     killer = None
     if kill_at is not None:
-        killer = threading.Thread(target=_kill_later,
-                                  args=(out / 'run' / 'sim.log', world, store, kill_at),
-                                  daemon=True)
+        killer = Killer(out / 'run' / 'sim.log', world, store, kill_at)
         killer.start()
-    result = run.run()
-    if killer is not None:
-        killer.join(timeout=1.0)
+    try:
+        result = run.run()
+    finally:
+        if killer is not None:
+            killer.stop()
     by_stamp: dict[int, bytes] = {}
     for msg in result.messages[target.pose_topic]:
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -153,19 +150,6 @@ def run_under_rory(target: Target, world: str, out: Path, *, domain_id: int, dur
     events_path = store / 'events.jsonl'
     events = [json.loads(line) for line in events_path.read_text().splitlines() if line.strip()]
     return by_stamp, events
-
-
-def _kill_later(sim_log: Path, world: str, store: Path, kill_at: float) -> None:
-    deadline = time.monotonic() + 120.0
-    while time.monotonic() < deadline:
-        if sim_log.exists() and f'{world}: running (seed' in sim_log.read_text(errors='replace'):
-            break
-        time.sleep(0.05)
-    time.sleep(kill_at)  # the simulator runs at real-time factor 1
-    events = [json.loads(line) for line in (store / 'events.jsonl').read_text().splitlines()
-              if line.strip()]
-    pid = [e['pid'] for e in events if e['kind'] == 'spawn'][-1]
-    os.kill(pid, signal.SIGKILL)
 
 
 def compare(reference: dict[int, bytes], crashed: dict[int, bytes],

@@ -225,7 +225,7 @@ def _execute(spec: RunSpec, out: Path, domain_id: int, instrumented: Path,
         run.record(pose_topic, pose_type, qos=1000)
     killer = None
     if spec.crash_at is not None:
-        killer = _Killer(out / 'run' / 'sim.log', spec.world, store, spec.crash_at)
+        killer = Killer(out / 'run' / 'sim.log', spec.world, store, spec.crash_at)
         killer.start()
     try:
         result = run.run()
@@ -280,7 +280,7 @@ def _events(path: Path) -> list[dict[str, Any]]:
     return out
 
 
-class _Killer(threading.Thread):
+class Killer(threading.Thread):
     """SIGKILLs the supervised node ``crash_at`` seconds after the simulator's clock starts."""
 
     def __init__(self, sim_log: Path, world: str, store: Path, crash_at: float) -> None:

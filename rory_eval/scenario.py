@@ -144,6 +144,7 @@ def prepare(
     interval: float | None,
     pace: str | None,
     program: Program = INTEGRATOR,
+    warm_standby: bool | None = None,
 ) -> Path:
     """Instrument the program into ``workdir`` and write a supervisor config; its path.
 
@@ -170,6 +171,8 @@ def prepare(
         node['checkpoint_interval'] = interval
     if pace is not None:
         node['replay'] = pace
+    if warm_standby is not None:
+        node['warm_standby'] = warm_standby
     config = {
         'nodes': [node],
         'safe_state': [
@@ -284,10 +287,12 @@ def run(
     pace: str | None = 'paced',
     timeout: float = 90.0,
     program: Program = INTEGRATOR,
+    warm_standby: bool | None = None,
 ) -> ScenarioResult:
     """Run the scenario once; always reaps every process it started."""
     workdir = workdir.resolve()
-    config = prepare(workdir, method, interval=interval, pace=pace, program=program)
+    config = prepare(workdir, method, interval=interval, pace=pace, program=program,
+                     warm_standby=warm_standby)
     store = workdir / f'store-{method}'
     if store.exists():
         shutil.rmtree(store)

@@ -69,8 +69,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument('--seed', type=int, default=0, help='base simulator seed (+ repetition)')
     parser.add_argument('--jobs', type=int, default=1,
                         help='runs at once (each takes about half a core)')
-    parser.add_argument('--domain', type=int, default=120,
-                        help='first ROS_DOMAIN_ID; the runs use the next --jobs ones')
+    parser.add_argument('--domain', type=int, default=100,
+                        help='first ROS_DOMAIN_ID; the runs use the next --jobs ones (keep them '
+                        '<= 101: higher ids have ports in the ephemeral range)')
     parser.add_argument('--out', type=Path, default=Path('eval-out'))
     parser.add_argument('--fresh', action='store_true', help='redo runs already recorded')
     args = parser.parse_args(argv)

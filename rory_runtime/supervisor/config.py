@@ -10,6 +10,7 @@ Example::
         replay: paced             # paced | fast; default: keyvars.yaml's, else paced
         hang_timeout: 10.0        # s without a heartbeat: hung, killed, recovered (null: off)
         start_timeout: 60.0       # s from spawn to the first heartbeat (null: off)
+        warm_standby: true        # a started process waits to replace it (default: rory only)
     safe_state:                   # held from S1 until S4
       - topic: /e_stop
         type: std_msgs/msg/Bool
@@ -68,6 +69,9 @@ class NodeConfig:
     hang_timeout: float | None = 10.0
     # From spawn to the first beat (imports, rclpy.init, the node's constructor).
     start_timeout: float | None = 60.0
+    # A process that has already imported rclpy and joined DDS waits to become the node at its
+    # next start (rory_runtime/standby.py): restart without the ~2 s of DDS discovery.
+    warm_standby: bool = False
 
 
 @dataclass(frozen=True)
@@ -201,6 +205,7 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         {
             'name', 'command', 'method', 'checkpoint_interval', 'replay',
             'restart_on_clean_exit', 'env', 'backoff', 'hang_timeout', 'start_timeout',
+            'warm_standby',
         },
     )
     name = f.required('name')
@@ -238,6 +243,9 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         backoff=_backoff(path, f'{where}.backoff', f.obj.get('backoff') or {}),
         hang_timeout=f.optional_number('hang_timeout', NodeConfig.hang_timeout),
         start_timeout=f.optional_number('start_timeout', NodeConfig.start_timeout),
+        # Default on for rory only: restart stands for ROS's respawn, and checkpoint and
+        # replay for the paper's ablations, all cold starts.
+        warm_standby=f.boolean('warm_standby', method == Method.RORY.value),
     )
 
 

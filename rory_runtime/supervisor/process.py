@@ -49,6 +49,18 @@ class Launcher(Protocol):
         """Start ``argv`` with exactly ``env`` in ``cwd``."""
         ...
 
+    def prepare(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> int | None:
+        """Get ready for the next ``spawn`` of ``argv`` (a warm standby); its pid, or None."""
+        ...
+
+    def discard(self, argv: Sequence[str], cwd: Path) -> None:
+        """Forget what ``prepare`` made for ``argv``."""
+        ...
+
+    def close(self) -> None:
+        """Release everything prepared."""
+        ...
+
 
 def _die_with_supervisor() -> None:
     # A node must not outlive its supervisor unsupervised: a restarted supervisor recovers it
@@ -97,6 +109,16 @@ class PopenLauncher:
             preexec_fn=_die_with_supervisor,
         )
         return _PopenChild(proc)
+
+    def prepare(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> int | None:
+        """Nothing to prepare: every start is cold."""
+        return None
+
+    def discard(self, argv: Sequence[str], cwd: Path) -> None:
+        """Nothing prepared."""
+
+    def close(self) -> None:
+        """Nothing prepared."""
 
 
 def describe_exit(code: int) -> str:

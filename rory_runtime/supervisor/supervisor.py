@@ -43,11 +43,12 @@ from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
 from .config import NodeConfig, SupervisorConfig
 from .poison import PoisonGuard
-from .process import Child, Launcher, PopenLauncher, RestartPolicy, describe_exit
+from .process import Child, Launcher, RestartPolicy, describe_exit
 from .recovery import Recovery
 from .ring import Ring, RingContext
 from .run_marker import PreviousRun, RunMarker
 from .safety import SafeState
+from .standby import WarmLauncher
 from .states import LOG_PREFIX, NodeState, NodeStateMachine, StateEvent
 
 _logger = logging.getLogger('rory.supervisor')
@@ -63,6 +64,10 @@ HELLO_TIMEOUT = 10.0
 """Seconds a new process may beat without its HELLO reaching the supervisor. Its runtime sends
 HELLO right after its first callback, so a beating node whose HELLO never arrives is one whose
 status writer the supervisor never discovered: only a new process (a new participant) helps."""
+
+STANDBY_DELAY = 1.0
+"""Seconds a node runs after its (re)start before its next standby is started: the standby's
+imports must not compete with the node's own start or recovery for the CPU."""
 
 HANG_DUMP_GRACE = 0.3
 """Seconds between SIGUSR1 (a hung node prints its threads' stacks) and SIGKILL."""
@@ -161,6 +166,7 @@ class ManagedNode:
         self.hung_for: float | None = None  # how long it had not beaten, once judged hung
         self.kill_reason: str | None = None  # why the supervisor killed the current process
         self.resumed = False  # first started from the store of a run that did not stop
+        self.standby_for: int | None = None  # the incarnation whose successor is on standby
         self.replay_pub: Publisher = sup.ros_node.create_publisher(
             UInt8MultiArray, protocol.replay_topic(cfg.name), protocol.REPLAY_QOS
         )
@@ -179,6 +185,26 @@ class ManagedNode:
             incarnation=self.incarnation,
         )
 
+    def _env(self, mode: Mode, incarnation: int) -> dict[str, str]:
+        env = dict(os.environ)
+        env.update(self.cfg.env)
+        env.update(
+            {
+                protocol.ENV_NODE: self.id,
+                protocol.ENV_STORE: str(self.sup.config.store),
+                protocol.ENV_INCARNATION: str(incarnation),
+                protocol.ENV_METHOD: self.cfg.method.value,
+                protocol.ENV_MODE: mode.value,
+                protocol.ENV_QUARANTINE: self.poison.env_value(),
+                'PYTHONUNBUFFERED': '1',
+            }
+        )
+        if self.cfg.checkpoint_interval is not None:
+            env[protocol.ENV_INTERVAL] = repr(self.cfg.checkpoint_interval)
+        else:
+            env.pop(protocol.ENV_INTERVAL, None)
+        return env
+
     def spawn(self, mode: Mode) -> None:
         """Start a new process of this node (main thread only)."""
         self.incarnation += 1
@@ -192,32 +218,21 @@ class ManagedNode:
         self.sync_nonce = random.getrandbits(63)
         self.synced_counts = None
         self.release_sent = False
-        env = dict(os.environ)
-        env.update(self.cfg.env)
-        env.update(
-            {
-                protocol.ENV_NODE: self.id,
-                protocol.ENV_STORE: str(self.sup.config.store),
-                protocol.ENV_INCARNATION: str(self.incarnation),
-                protocol.ENV_METHOD: self.cfg.method.value,
-                protocol.ENV_MODE: mode.value,
-                protocol.ENV_QUARANTINE: self.poison.env_value(),
-                'PYTHONUNBUFFERED': '1',
-            }
-        )
-        if self.cfg.checkpoint_interval is not None:
-            env[protocol.ENV_INTERVAL] = repr(self.cfg.checkpoint_interval)
-        else:
-            env.pop(protocol.ENV_INTERVAL, None)
+        env = self._env(mode, self.incarnation)
         child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder)
         self.child = child
         incarnation = self.incarnation
+        warm = bool(getattr(child, 'warm', False))
+        why_cold = str(getattr(child, 'why_cold', ''))
+        if self.standby_for is not None and not warm:
+            _logger.warning('%s %s: started cold: %s', LOG_PREFIX, self.id, why_cold)
+        self.standby_for = None
         _logger.info(
-            '%s %s: spawned pid %d (incarnation %d, %s)', LOG_PREFIX, self.id, child.pid,
-            incarnation, mode.value,
+            '%s %s: spawned pid %d (incarnation %d, %s, %s)', LOG_PREFIX, self.id, child.pid,
+            incarnation, mode.value, 'from its standby' if warm else 'cold',
         )
         self.sup.events_log.write('spawn', self.id, pid=child.pid, incarnation=incarnation,
-                                  mode=mode.value)
+                                  mode=mode.value, warm=warm)
 
         def reap() -> None:
             code = child.wait()
@@ -275,6 +290,7 @@ class ManagedNode:
         self.sup.events_log.write('exit', self.id, code=ev.code, incarnation=ev.incarnation)
         if ev.code == 0 and not self.cfg.restart_on_clean_exit:
             self.sm.change_state(NodeState.EXITED, how)
+            self._drop_standby()
             self._end_recovery()
             return
         ran_for = 0.0 if self.running_since is None else ev.at - self.running_since
@@ -291,6 +307,7 @@ class ManagedNode:
                 f'{self.policy.consecutive - 1} restarts in a row failed; giving up',
             )
             self.sup.events_log.write('fatal', self.id, crashes=self.policy.consecutive)
+            self._drop_standby()
             if self.recovery is not None:
                 # Stop recording for a node that will not come back (R stays on disk).
                 self.recovery.finish()
@@ -477,11 +494,34 @@ class ManagedNode:
             self.sup.safety.release(self.id)
             self.recovery = None
 
+    def _prepare_standby(self) -> None:
+        """Start the process that will replace this one at its next crash."""
+        self.standby_for = self.incarnation
+        pid = self.sup.launcher.prepare(
+            self.cfg.command, self._env(Mode.RECOVER, self.incarnation + 1),
+            self.sup.config.folder,
+        )
+        if pid is None:
+            _logger.info('%s %s: no warm standby for this command (not python FILE or '
+                         'python -m MODULE); restarts are cold', LOG_PREFIX, self.id)
+            return
+        _logger.info('%s %s: standby pid %d started', LOG_PREFIX, self.id, pid)
+        self.sup.events_log.write('standby', self.id, pid=pid, incarnation=self.incarnation)
+
+    def _drop_standby(self) -> None:
+        if self.standby_for is not None:
+            self.sup.launcher.discard(self.cfg.command, self.sup.config.folder)
+            self.standby_for = None
+
     def tick(self, now: float) -> None:
-        """Time-driven work: hang detection, SYNC resends, arming, backoff expiry."""
+        """Time-driven work: hang detection, SYNC resends, arming, backoff expiry, standby."""
         state = self.sm.state
         if state in _LIVE:
             self._check_heartbeat(now)
+        if (state == NodeState.RUNNING and self.cfg.warm_standby
+                and self.standby_for != self.incarnation and self.running_since is not None
+                and now - self.running_since >= STANDBY_DELAY):
+            self._prepare_standby()
         if state == NodeState.BACKOFF and self.restart_at is not None and now >= self.restart_at:
             self._restart()
         elif state in (NodeState.ARMING, NodeState.REPLAYING):
@@ -556,6 +596,7 @@ class ManagedNode:
         if self.sm.state in (NodeState.STOPPING, NodeState.STOPPED):
             return
         self.sm.change_state(NodeState.STOPPING, 'supervisor stopping')
+        self._drop_standby()
         if self.recovery is not None:
             self.recovery.finish()
         child = self.child
@@ -584,7 +625,7 @@ class Supervisor:
                  start: StartMode = 'auto') -> None:
         self.config = config
         self.start_mode = start
-        self.launcher: Launcher = launcher or PopenLauncher()
+        self.launcher: Launcher = launcher or WarmLauncher()
         self.events: queue.Queue[Event] = queue.Queue()
         self.nodes: dict[str, ManagedNode] = {}
         self._ring_ctx: RingContext | None = None
@@ -706,6 +747,7 @@ class Supervisor:
         finally:
             for node in self.nodes.values():
                 node.stop()
+            self.launcher.close()
             # Every node was stopped by us: the next run starts fresh.
             marker.mark_clean()
             marker.release()

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 import yaml
 
-from rory_eval.scenario import prepare, scenario_env
+from rory_eval.scenario import Kill, prepare, run, scenario_env
 
 pytestmark = pytest.mark.ros
 
@@ -81,14 +81,28 @@ def test_signal_stops_supervisor_and_its_node(
     _wait_for(
         lambda: any(e['kind'] == 'checkpoint' for e in _events(store)), 10, 'a checkpoint'
     )
+    _wait_for(lambda: any(e['kind'] == 'standby' for e in _events(store)), 10, 'a standby')
+    standby_pid = next(e['pid'] for e in _events(store) if e['kind'] == 'standby')
     sup.send_signal(sig)
     out, _ = sup.communicate(timeout=20)
     assert sup.returncode == 0, out.decode()
     assert not _alive(node_pid), 'the node outlived its supervisor'
+    assert not _alive(standby_pid), 'the warm standby outlived its supervisor'
     text = out.decode()
     assert f'stopping ({sig.name})' in text
     assert 'integrator: STOPPING -> STOPPED' in text
     assert 'terminate called' not in text
+
+
+def test_a_crash_is_recovered_by_the_warm_standby(tmp_path: Path, ros_domain: int) -> None:
+    result = run('rory', (Kill(after=4.0),), tmp_path, domain_id=ros_domain, pace='fast')
+    assert result.correct, result
+    events = _events(tmp_path / 'store-rory')
+    standby = next(e for e in events if e['kind'] == 'standby')
+    spawns = [e for e in events if e['kind'] == 'spawn']
+    assert [s['warm'] for s in spawns[:2]] == [False, True]
+    assert spawns[1]['pid'] == standby['pid'] and standby['incarnation'] == 1
+    assert len(result.recoveries) == 1
 
 
 def test_crash_loop_backs_off_then_gives_up(

@@ -26,6 +26,7 @@ nodes:
     checkpoint_interval: 0.5
     replay: fast
     restart_on_clean_exit: true
+    warm_standby: true
     env: {FOO: bar, COUNT: 3}
     backoff:
       initial: 0.1
@@ -89,6 +90,7 @@ def test_full_example_sets_every_field(tmp_path: Path) -> None:
                 checkpoint_interval=0.5,
                 replay=ReplayPace.FAST,
                 restart_on_clean_exit=True,
+                warm_standby=True,
                 env={'FOO': 'bar', 'COUNT': '3'},
                 backoff=Backoff(
                     initial=0.1, step=0.2, maximum=4.0, stable_after=3.0, max_restarts=7
@@ -134,6 +136,7 @@ def test_defaults(tmp_path: Path) -> None:
     assert node.checkpoint_interval is None
     assert node.replay is None
     assert node.restart_on_clean_exit is False
+    assert node.warm_standby is True  # rory's default; the other methods start cold
     assert dict(node.env) == {}
     assert node.backoff == Backoff()
     assert Backoff() == Backoff(
@@ -244,6 +247,7 @@ ERRORS = [
     ('nodes:\n' + NODE + '    checkpoint_interval: .inf\n', 'nodes[0].checkpoint_interval'),
     ('nodes:\n' + NODE + '    checkpoint_interval: .nan\n', 'nodes[0].checkpoint_interval'),
     ('nodes:\n' + NODE + '    restart_on_clean_exit: 1\n', 'nodes[0].restart_on_clean_exit'),
+    ('nodes:\n' + NODE + '    warm_standby: yes please\n', 'nodes[0].warm_standby'),
     ('nodes:\n' + NODE + '    restart_on_clean_exit: maybe\n', 'nodes[0].restart_on_clean_exit'),
     ('nodes:\n' + NODE + '    env: [A, B]\n', 'nodes[0].env'),
     ('nodes:\n' + NODE + '    env: {1: a}\n', 'nodes[0].env'),
@@ -400,3 +404,11 @@ def test_hang_and_start_timeouts(tmp_path: Path) -> None:
     text = 'nodes:\n' + NODE + '    hang_timeout: 2.5\n    start_timeout: null\n'
     node = load_config(write(tmp_path, text, 'b.yaml')).nodes[0]
     assert (node.hang_timeout, node.start_timeout) == (2.5, None)
+
+
+@pytest.mark.parametrize('method', ['restart', 'checkpoint', 'replay'])
+def test_only_rory_has_a_warm_standby_by_default(tmp_path: Path, method: str) -> None:
+    # restart stands for ROS's respawn and the others for the paper's ablations: cold starts.
+    text = f'nodes:\n  - name: a\n    command: [python, a.py]\n    method: {method}\n'
+    path = write(tmp_path, text)
+    assert load_config(path).nodes[0].warm_standby is False

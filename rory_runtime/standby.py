@@ -1,0 +1,339 @@
+"""A warm standby: a process that has done a node's slow start-up before the node crashes.
+
+A cold restart of a Python rclpy node costs ~0.25 s of imports and initialisation and then, in
+most runs, 1.7-2.6 s before the rest of the graph hears the new DDS participant. A process
+whose participant is already known gets its first message ~10 ms after creating its node. So
+the supervisor keeps one of these per node, started while the node runs::
+
+    python -m rory_runtime.standby --control-fd R --ready-fd W -- node.py [args...]
+    python -m rory_runtime.standby --control-fd R --ready-fd W -- -m package.node [args...]
+
+Before activation it imports what the node's program imports from outside its own folder
+(rclpy, numpy, message packages and their type support, RORY's runtime), calls
+``rclpy.init`` with the node's own arguments and creates a hidden placeholder node, so that its
+participant exists and is discovered while the real node still runs. It writes one byte on the
+ready descriptor and waits.
+
+Activation is one JSON line on the control descriptor: the environment the supervisor would
+have given a new process (incarnation, mode, quarantine). The standby applies it and runs the
+program as ``python node.py`` would (``__name__ == '__main__'``); the program's own
+``rclpy.init()`` is absorbed when its arguments are the ones already used; the placeholder is
+destroyed as soon as the program's node exists, so the participant is never without a node.
+End of file on the control descriptor (the supervisor dropped it) ends the standby.
+
+The node's own modules are never imported before activation: a node class is decorated from
+the environment at import time, and that environment only exists at activation. A third-party
+module that decorates at import is abandoned (its import fails here and is redone later).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import contextlib
+import importlib
+import importlib.util
+import json
+import logging
+import os
+import runpy
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+_logger = logging.getLogger('rory.standby')
+
+ACTIVATE_LIMIT = 1 << 20
+"""Largest activation line accepted (bytes); the environment is a few hundred."""
+
+PLACEHOLDER_PREFIX = '_rory_standby_'
+"""Node name prefix of the placeholder (a leading underscore hides it from node lists)."""
+
+
+class StandbyError(Exception):
+    """The standby was started wrongly or activated with a bad message."""
+
+
+@dataclass(frozen=True)
+class Program:
+    """What the standby will run: a script path or a module, and its arguments."""
+
+    script: Path | None
+    module: str | None
+    args: tuple[str, ...]
+
+    @classmethod
+    def parse(cls, argv: Sequence[str]) -> Program:
+        """``node.py args...`` or ``-m package.node args...``.
+
+        Raises:
+            StandbyError: Neither form (interpreter options such as ``-u`` are not taken).
+        """
+        argv = list(argv)
+        if len(argv) >= 2 and argv[0] == '-m':
+            return cls(None, argv[1], tuple(argv[2:]))
+        if argv and not argv[0].startswith('-'):
+            return cls(Path(argv[0]), None, tuple(argv[1:]))
+        raise StandbyError(f'not a script or -m module: {argv!r}')
+
+    @property
+    def argv(self) -> list[str]:
+        """sys.argv as the program will see it (for -m, runpy puts the module's path first)."""
+        head = str(self.script) if self.script is not None else str(self.module)
+        return [head, *self.args]
+
+    def home(self) -> Path:
+        """The directory Python puts first on sys.path for this program."""
+        if self.script is not None:
+            return self.script.resolve().parent
+        return Path.cwd()
+
+
+# -- warming up ---------------------------------------------------------------------------------
+
+
+def _imports_of(source: str) -> list[tuple[str, tuple[str, ...]]]:
+    """Absolute imports anywhere in a module: (module, names taken from it)."""
+    found: list[tuple[str, tuple[str, ...]]] = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found.extend((alias.name, ()) for alias in node.names)
+        elif (isinstance(node, ast.ImportFrom) and node.level == 0 and node.module
+              and node.module != '__future__'):
+            found.append((node.module, tuple(a.name for a in node.names)))
+    return found
+
+
+def _is_own(name: str, home: Path, own_top: str | None) -> bool:
+    """Whether a module belongs to the program (its folder, or its own package)."""
+    top = name.partition('.')[0]
+    if top == own_top:
+        return True
+    try:
+        spec = importlib.util.find_spec(top)
+    except (ImportError, ValueError):
+        return True  # unknown: leave it to the program
+    if spec is None:
+        return True
+    places = [spec.origin] if spec.origin else []
+    places += list(spec.submodule_search_locations or [])
+    return any(p and Path(p).resolve().is_relative_to(home) for p in places)
+
+
+def foreign_imports(program: Program) -> list[tuple[str, tuple[str, ...]]]:
+    """What the program (and its own modules, followed) imports from outside itself."""
+    home = program.home()
+    own_top = program.module.partition('.')[0] if program.module else None
+    if program.script is not None:
+        first = program.script.resolve()
+    else:
+        spec = importlib.util.find_spec(str(program.module))
+        if spec is None or not spec.origin:
+            return []
+        first = Path(spec.origin)
+    todo: list[Path] = [first]
+    seen: set[Path] = set()
+    found: list[tuple[str, tuple[str, ...]]] = []
+    while todo:
+        path = todo.pop()
+        if path in seen or len(seen) > 200:
+            continue
+        seen.add(path)
+        try:
+            imports = _imports_of(path.read_text(encoding='utf-8'))
+        except (OSError, SyntaxError, UnicodeDecodeError, ValueError):
+            continue
+        for name, names in imports:
+            if not _is_own(name, home, own_top):
+                found.append((name, names))
+                continue
+            local = home.joinpath(*name.split('.'))
+            for candidate in (local.with_suffix('.py'), local / '__init__.py'):
+                if candidate.is_file():
+                    todo.append(candidate.resolve())
+    return found
+
+
+class _Deferred(Exception):
+    """A module tried to decorate a node class before activation."""
+
+
+def warm_imports(program: Program) -> list[str]:
+    """Import what the program will import from outside itself; the names that failed."""
+    from rory_runtime import attach
+
+    def refuse(*_args: Any, **_kwargs: Any) -> Any:
+        raise _Deferred
+    real = attach.RuntimeEnv.from_environ
+    attach.RuntimeEnv.from_environ = refuse  # type: ignore[method-assign]
+    failed: list[str] = []
+    try:
+        for name, names in foreign_imports(program):
+            try:
+                module = importlib.import_module(name)
+            except (Exception, _Deferred):  # the program will meet (and report) it again
+                failed.append(name)
+                continue
+            if name.endswith('.msg') or name.endswith('.srv'):
+                for attr in names:
+                    _load_type_support(getattr(module, attr, None))
+    finally:
+        attach.RuntimeEnv.from_environ = real  # type: ignore[method-assign]
+    return failed
+
+
+def _load_type_support(msgtype: Any) -> None:
+    # rclpy loads a type's C support the first time an entity uses it (~ms each).
+    load = getattr(type(msgtype), '__import_type_support__', None) if msgtype else None
+    if load is not None:
+        with contextlib.suppress(Exception):  # loaded again, with its real error, when used
+            load()
+
+
+# -- activation ---------------------------------------------------------------------------------
+
+
+def read_activation(fd: int) -> dict[str, str] | None:
+    """Block until the activation line arrives; its environment, or None at end of file.
+
+    Raises:
+        StandbyError: The line is not a JSON object of strings under ``env``.
+    """
+    data = b''
+    while not data.endswith(b'\n'):
+        chunk = os.read(fd, 65536)
+        if not chunk:
+            return None if not data else _decode(data)
+        data += chunk
+        if len(data) > ACTIVATE_LIMIT:
+            raise StandbyError(f'activation longer than {ACTIVATE_LIMIT} bytes')
+    return _decode(data)
+
+
+def _decode(data: bytes) -> dict[str, str]:
+    try:
+        message = json.loads(data)
+        env = message['env']
+    except (ValueError, KeyError, TypeError) as err:
+        raise StandbyError(f'bad activation message: {err}') from None
+    if not isinstance(env, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in env.items()
+    ):
+        raise StandbyError('bad activation message: env must map strings to strings')
+    return env
+
+
+def encode_activation(env: dict[str, str]) -> bytes:
+    """The activation line for an environment update."""
+    return json.dumps({'env': env}).encode() + b'\n'
+
+
+def absorb_init(rclpy: Any, used_args: list[str]) -> Callable[[], None]:
+    """Make the program's ``rclpy.init()`` a no-op when it asks for what is already done.
+
+    Anything else (other arguments, a context, a domain id) shuts the standby's context down
+    and initialises as asked: correct, only no longer warm. Returns the undo.
+    """
+    real_init = rclpy.init
+
+    def init(*args: Any, **kwargs: Any) -> None:
+        rclpy.init = real_init
+        wanted = kwargs.get('args', args[0] if args else None)
+        wanted = list(sys.argv if wanted is None else wanted)
+        extra = set(kwargs) - {'args'} or len(args) > 1
+        if not extra and wanted[1:] == used_args[1:] and rclpy.ok():
+            return None
+        _logger.warning('[rory] standby: the program initialises rclpy differently; '
+                        'starting cold')
+        rclpy.try_shutdown()
+        real_init(*args, **kwargs)
+
+    rclpy.init = init
+
+    def undo() -> None:
+        rclpy.init = real_init
+    return undo
+
+
+def drop_placeholder_after_first_node(node_class: Any, placeholder: Any) -> None:
+    """Destroy the placeholder once the program's first node exists.
+
+    The DDS participant lives as long as the context has a node: the real node must exist
+    before the placeholder goes, or the participant (and its discovery) would be lost.
+    """
+    original = node_class.__init__
+
+    def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
+        original(self, *args, **kwargs)
+        if node_class.__init__ is __init__:
+            node_class.__init__ = original
+        nonlocal placeholder
+        if placeholder is not None and self is not placeholder:
+            done, placeholder = placeholder, None
+            done.destroy_node()
+
+    node_class.__init__ = __init__
+
+
+def run_program(program: Program) -> None:
+    """Run it as ``python`` would have."""
+    if program.script is not None:
+        sys.argv = program.argv
+        sys.path[0] = str(program.home())
+        runpy.run_path(str(program.script), run_name='__main__')
+    else:
+        sys.argv = program.argv
+        runpy.run_module(str(program.module), run_name='__main__', alter_sys=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Warm up, wait for activation, become the node."""
+    parser = argparse.ArgumentParser(prog='python -m rory_runtime.standby')
+    parser.add_argument('--control-fd', type=int, required=True)
+    parser.add_argument('--ready-fd', type=int, default=None)
+    parser.add_argument('program', nargs=argparse.REMAINDER)
+    args = parser.parse_args(argv)
+    command = args.program[1:] if args.program[:1] == ['--'] else args.program
+    try:
+        program = Program.parse(command)
+    except StandbyError as err:
+        print(f'rory standby: {err}', file=sys.stderr)
+        return 2
+    if program.script is not None:
+        sys.path[0] = str(program.home())
+    warm_imports(program)
+    import rclpy
+    from rclpy.node import Node
+
+    from .log import default_typestore
+
+    default_typestore()
+    used_args = program.argv
+    rclpy.init(args=used_args)
+    placeholder = Node(f'{PLACEHOLDER_PREFIX}{os.getpid()}', start_parameter_services=False,
+                       enable_rosout=False)
+    if args.ready_fd is not None:
+        os.write(args.ready_fd, b'R')
+        os.close(args.ready_fd)
+    try:
+        env = read_activation(args.control_fd)
+    except StandbyError as err:
+        print(f'rory standby: {err}', file=sys.stderr)
+        return 2
+    finally:
+        os.close(args.control_fd)
+    if env is None:  # dropped before use
+        placeholder.destroy_node()
+        rclpy.shutdown()
+        return 0
+    os.environ.update(env)
+    absorb_init(rclpy, used_args)
+    drop_placeholder_after_first_node(Node, placeholder)
+    run_program(program)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -203,6 +203,7 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
     from rory_eval.evaluation import figures, report
 
     judged = report.judge_all(runs)
+    busy, sittings = report.running_time(runs)
     report.write_csv(args.out / 'runs.csv', runs, judged)
     pngs = figures.all_figures(runs, judged, args.out / 'figures')
     crash = 'uniformly random per repetition' if args.random_crash else f'{args.crash_at:g} s'
@@ -212,7 +213,8 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
     text = [
         '# RORY evaluation: the paper\'s tables from real runs',
         '',
-        f'- date: {started:%Y-%m-%d %H:%M} UTC; took {seconds / 60:.1f} min for {len(runs)} runs',
+        f'- date: {started:%Y-%m-%d %H:%M} UTC; {len(runs)} runs took {busy / 60:.1f} min in '
+        f'{sittings} sitting{"s" if sittings != 1 else ""} (this call: {seconds / 60:.1f} min)',
         f'- machine: {_machine()}',
         f'- command: `{shlex.join(["rory", "eval", *argv])}`',
         f'- targets: {", ".join(args.targets)}; worlds: {", ".join(args.worlds)}; methods: '

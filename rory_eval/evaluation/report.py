@@ -23,7 +23,7 @@ from typing import Any
 
 from rory_eval.evaluation.judge import Verdict, judge
 from rory_eval.evaluation.plan import BARE, METHODS, TARGETS, WORLDS
-from rory_eval.evaluation.runner import RunRecord
+from rory_eval.evaluation.runner import RECORD, RunRecord
 
 # The recovery steps as the supervisor reports them (rory_runtime/supervisor/recovery.py).
 STEPS = (('S1 safe state', ('s1_ms',)), ('S2 isolate', ('s2_ms',)),
@@ -174,6 +174,30 @@ def overhead_table(runs: Sequence[tuple[RunRecord, Path]]) -> str:
                          f'{cpu1:.1f}% ({cpu1 / cpu0:.2f}x) | '
                          f'{rss1:.0f} MB ({rss1 / rss0:.2f}x, +{rss1 - rss0:.0f} MB) |')
     return '\n'.join(lines)
+
+
+def running_time(runs: Sequence[tuple[RunRecord, Path]], *, gap: float = 600.0
+                 ) -> tuple[float, int]:
+    """Seconds the evaluation spent running, and in how many sittings.
+
+    An interrupted evaluation is resumed later, so the time of the last call is not the
+    evaluation's. Each run spans [end - wall_seconds, end], its end being when its record was
+    written. Runs less than ``gap`` seconds apart belong to one sitting, which lasted from its
+    first run's start to its last run's end; the running time is the sum over sittings.
+    """
+    spans = sorted(
+        ((folder / RECORD).stat().st_mtime - record.wall_seconds,
+         (folder / RECORD).stat().st_mtime)
+        for record, folder in runs
+        if record.wall_seconds > 0 and (folder / RECORD).exists()
+    )
+    sittings: list[list[float]] = []
+    for begin, finish in spans:
+        if sittings and begin - sittings[-1][1] <= gap:
+            sittings[-1][1] = max(sittings[-1][1], finish)
+        else:
+            sittings.append([begin, finish])
+    return sum(b - a for a, b in sittings), len(sittings)
 
 
 def failures(judged: Sequence[Judged]) -> str:

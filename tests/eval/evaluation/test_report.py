@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from rory_eval.evaluation.report import (
     judge_all,
     overhead_table,
     recovery_table,
+    running_time,
     steps_table,
     symbol,
     write_csv,
@@ -83,3 +85,21 @@ def test_the_csv_has_a_row_per_run_with_its_verdict(tmp_path: Path) -> None:
     assert [(r['method'], r['correct']) for r in rows] == [
         (BARE, ''), ('rory', ''), ('restart', '0'), ('rory', '1')]
     assert rows[2]['total_ms'] == '1500.0' and 'coverage=' in rows[2]['measures']
+
+
+def test_running_time_sums_sittings_not_the_gaps_between_them(tmp_path: Path) -> None:
+    # Two runs in parallel, then one after them; a day later, the rest of the evaluation.
+    t0 = 1_800_000_000.0
+    runs = []
+    for k, (end, wall) in enumerate(((t0 + 30, 30.0), (t0 + 40, 35.0), (t0 + 75, 30.0),
+                                     (t0 + 86_400 + 60, 60.0))):
+        spec = RunSpec('grid_slam', 'office_small', BARE, k, None, 30.0)
+        folder = tmp_path / spec.name
+        folder.mkdir()
+        record = RunRecord(run=spec.to_json(), wall_seconds=wall)
+        record.save(folder)
+        os.utime(folder / 'record.json', (end, end))
+        runs.append((record, folder))
+    busy, sittings = running_time(runs)
+    assert sittings == 2
+    assert busy == 75.0 + 60.0  # t0..t0+75, then the 60 s run

@@ -55,7 +55,8 @@ class RingContext:
     def _spin(self) -> None:
         while self._running and self.context.ok():
             try:
-                self.executor.spin_once(timeout_sec=0.1)
+                # Woken by work and by shutdown(); the timeout only re-checks the flag.
+                self.executor.spin_once(timeout_sec=1.0)
             except Exception:
                 if self._running:
                     _logger.exception('[rory] ring executor error')
@@ -63,6 +64,7 @@ class RingContext:
     def shutdown(self) -> None:
         """Stop the thread and the context."""
         self._running = False
+        self.executor.wake()
         self._thread.join(timeout=2.0)
         self.executor.shutdown(timeout_sec=1.0)
         if self.context.ok():

@@ -65,6 +65,20 @@ HELLO_TIMEOUT = 10.0
 HELLO right after its first callback, so a beating node whose HELLO never arrives is one whose
 status writer the supervisor never discovered: only a new process (a new participant) helps."""
 
+FAST_TICK = 0.02
+"""Seconds between ticks while a node starts, arms or recovers (SYNC resends, arming)."""
+
+IDLE_TICK = 0.25
+"""Seconds between ticks while every node runs: heartbeat checks only (hang_timeout is in
+seconds). Events (an exit, a status) wake the loop at once whatever the tick."""
+
+SPIN_TIMEOUT = 1.0
+"""rclpy executors wake on work and on their context's shutdown; the timeout only bounds how
+long a spinner takes to notice anything else. Short timeouts cost CPU: each spin_once builds a
+wait set (~0.3 ms)."""
+
+_QUIET = frozenset({NodeState.RUNNING, NodeState.EXITED, NodeState.FATAL})
+
 STANDBY_DELAY = 1.0
 """Seconds a node runs after its (re)start before its next standby is started: the standby's
 imports must not compete with the node's own start or recovery for the CPU."""
@@ -767,15 +781,16 @@ class Supervisor:
     def _spin(self, executor: SingleThreadedExecutor) -> None:
         while rclpy.utilities.ok():
             try:
-                executor.spin_once(timeout_sec=0.1)
+                executor.spin_once(timeout_sec=SPIN_TIMEOUT)
             except Exception:
                 if rclpy.utilities.ok():
                     _logger.exception('%s executor error', LOG_PREFIX)
 
     def _loop(self) -> int:
         for _ in itertools.count():
+            quiet = all(n.sm.state in _QUIET for n in self.nodes.values())
             try:
-                event = self.events.get(timeout=0.02)
+                event = self.events.get(timeout=IDLE_TICK if quiet else FAST_TICK)
             except queue.Empty:
                 event = None
             if isinstance(event, Stop):

@@ -31,9 +31,11 @@ test: lint
 eval: $(STAMP)
 	$(PY) -m rory_eval.evaluation --jobs 2
 
-# Recovery time per method, median of 10 runs, side by side (not run in CI).
+# Recovery time per method (cold and warm starts), median of 10 runs, side by side; then
+# whether recording keeps up with scan + odom + cloud + 4 MB map, bare against RORY (not in CI).
 bench: $(STAMP)
 	$(PY) -m rory_eval.bench --runs 10
+	$(PY) -m rory_eval.recording_bench --seconds 30
 
 # How fast a SIGKILLed and restarted process is heard, per DDS setting.
 discovery: $(STAMP)

@@ -197,7 +197,7 @@ class SimRun:
             self._wait_for_clock(sim, deadline)
             for node in self._nodes:
                 assert node.proc is not None
-                node.start_ticks = _tree_cpu_ticks(node.proc.pid)
+                node.start_ticks = tree_cpu_ticks(node.proc.pid)
                 node.start_wall = time.monotonic()
             recorder.publish_once(deadline, self._check_nodes)
             while sim.poll() is None:
@@ -213,9 +213,9 @@ class SimRun:
                 assert node.proc is not None
                 if node.proc.poll() is None:
                     node.usage = NodeUsage(
-                        (_tree_cpu_ticks(node.proc.pid) - node.start_ticks) / _CLK_TCK,
+                        (tree_cpu_ticks(node.proc.pid) - node.start_ticks) / _CLK_TCK,
                         time.monotonic() - node.start_wall,
-                        sum(_peak_rss_mb(pid) for pid in _process_tree(node.proc.pid)),
+                        sum(peak_rss_mb(pid) for pid in process_tree(node.proc.pid)),
                     )
                 exit_codes[node.name] = node.proc.poll()
             # Let the last outputs arrive before the recorder stops.
@@ -364,7 +364,7 @@ def _stat_fields(pid: int) -> list[str]:
         return []
 
 
-def _process_tree(root: int) -> list[int]:
+def process_tree(root: int) -> list[int]:
     """root and every live descendant (by each process's parent in /proc)."""
     children: dict[int, list[int]] = {}
     for entry in Path('/proc').iterdir():
@@ -380,18 +380,18 @@ def _process_tree(root: int) -> list[int]:
     return tree
 
 
-def _tree_cpu_ticks(root: int) -> int:
+def tree_cpu_ticks(root: int) -> int:
     """CPU ticks of a process tree: each live member's own, plus what the members' reaped
     children used (a crashed node's time lands in its supervisor's cutime/cstime)."""
     total = 0
-    for pid in _process_tree(root):
+    for pid in process_tree(root):
         fields = _stat_fields(pid)
         if fields:
             total += sum(int(f) for f in fields[11:15])  # utime, stime, cutime, cstime
     return total
 
 
-def _peak_rss_mb(pid: int) -> float:
+def peak_rss_mb(pid: int) -> float:
     try:
         for line in Path(f'/proc/{pid}/status').read_text().splitlines():
             if line.startswith('VmHWM:'):

@@ -257,7 +257,7 @@ class _Events:
 
 
 @contextlib.contextmanager
-def _process(
+def child_process(
     args: list[str], env: dict[str, str], cwd: Path, log: Path
 ) -> Iterator[subprocess.Popen[bytes]]:
     with log.open('wb') as out:
@@ -307,7 +307,7 @@ def run(
     deadline = time.monotonic() + timeout
     sup_log = workdir / f'supervisor-{method}.log'
     try:
-        with _process(
+        with child_process(
             [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
             env, workdir, sup_log,
         ) as sup:
@@ -319,7 +319,7 @@ def run(
             # The node, plus RORY's own reader for the methods that record.
             min_subs = '2' if method in ('rory', 'replay') else '1'
             publisher = [sys.executable, str(EXAMPLE / 'count_publisher.py'), str(count), str(rate)]
-            with _process(
+            with child_process(
                 [*publisher, min_subs], env, workdir, workdir / f'publisher-{method}.log'
             ) as pub:
                 started: float | None = None

@@ -18,8 +18,8 @@ from rory_eval.scenario import (
     EXAMPLE,
     _Events,
     _Observer,
-    _process,
     _Tracker,
+    child_process,
     prepare,
     scenario_env,
 )
@@ -71,7 +71,7 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
 
     try:
         log1 = workdir / 'supervisor-1.log'
-        with _process([*SUPERVISE, str(config)], env, workdir, log1) as sup1:
+        with child_process([*SUPERVISE, str(config)], env, workdir, log1) as sup1:
             _wait('first start', running, 30, log1, sup1)
             node_pid = tracker.pid
             assert node_pid is not None
@@ -85,7 +85,7 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
         marker = json.loads((store / 'supervisor.json').read_text())
         assert marker['clean'] is False
         log2 = workdir / 'supervisor-2.log'
-        with _process([*SUPERVISE, str(config)], env, workdir, log2) as sup2:
+        with child_process([*SUPERVISE, str(config)], env, workdir, log2) as sup2:
             _wait('resumed', lambda: running() and tracker.pid != node_pid, 60, log2, sup2)
             kinds = [e['kind'] for e in events.events]
             assert 'resumed' in kinds
@@ -117,7 +117,7 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
 
         # After a clean stop the next run starts fresh and sets the old store aside.
         log3 = workdir / 'supervisor-3.log'
-        with _process([*SUPERVISE, str(config)], env, workdir, log3) as sup3:
+        with child_process([*SUPERVISE, str(config)], env, workdir, log3) as sup3:
             _wait('the old run set aside', (store / '.previous' / 'events.jsonl').exists, 30,
                   log3, sup3)
             fresh_events = _Events(store / 'events.jsonl')
@@ -150,7 +150,7 @@ def test_a_node_whose_status_is_never_heard_is_replaced_then_given_up(
     config.write_text(yaml.safe_dump(doc))
     env = scenario_env(ros_domain)
     log = workdir / 'supervisor.log'
-    with _process([*SUPERVISE, str(config)], env, workdir, log) as sup:
+    with child_process([*SUPERVISE, str(config)], env, workdir, log) as sup:
         assert sup.wait(timeout=90) == 1  # all nodes ended, FATAL
     events = [json.loads(line) for line in
               (workdir / 'store-rory' / 'events.jsonl').read_text().splitlines()]

@@ -90,6 +90,25 @@ def test_a_prepared_standby_becomes_the_program(
     assert not [n for n in seen['nodes'] if n.startswith('_rory_standby_')]
 
 
+def test_a_module_program_runs_as_python_dash_m_would(
+    tmp_path: Path, ros_domain: int, launcher: WarmLauncher
+) -> None:
+    package = tmp_path / 'prog_pkg'
+    package.mkdir()
+    (package / '__init__.py').write_text('')
+    (package / 'node.py').write_text(PROGRAM)
+    out = tmp_path / 'out.json'
+    argv = [sys.executable, '-m', 'prog_pkg.node', str(out), '0']
+    launcher.prepare(argv, _env(ros_domain, 2), tmp_path)
+    _wait_ready(launcher, argv, tmp_path)
+    child = launcher.spawn(argv, _env(ros_domain, 3), tmp_path)
+    assert child.warm is True
+    assert child.wait(timeout=30) == 0
+    seen = json.loads(out.read_text())
+    assert seen['name'] == '__main__' and seen['incarnation'] == '3'
+    assert seen['argv'] == [str(package / 'node.py'), str(out), '0']
+
+
 def test_a_changed_environment_starts_cold_and_says_why(
     tmp_path: Path, ros_domain: int, launcher: WarmLauncher
 ) -> None:

@@ -42,6 +42,7 @@ from ..log import SegmentStore, default_typestore
 from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
 from .config import NodeConfig, SupervisorConfig
+from .diagnostics import NodeHealth, Reporter, age
 from .poison import PoisonGuard
 from .process import Child, Launcher, RestartPolicy, describe_exit
 from .recovery import Recovery
@@ -135,6 +136,7 @@ class EventLog:
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
         self._file: TextIO = os.fdopen(fd, 'a', encoding='utf-8')
         self._lock = threading.Lock()
+        self.listeners: list[Callable[[dict[str, Any]], None]] = []  # e.g. /rory/events
 
     def write(self, kind: str, node: str, **fields: Any) -> None:
         """Append one event."""
@@ -142,6 +144,8 @@ class EventLog:
         with self._lock:
             self._file.write(json.dumps(record, sort_keys=True) + '\n')
             self._file.flush()
+        for listener in self.listeners:
+            listener(record)
 
     def close(self) -> None:
         """Close the file."""
@@ -181,6 +185,9 @@ class ManagedNode:
         self.kill_reason: str | None = None  # why the supervisor killed the current process
         self.resumed = False  # first started from the store of a run that did not stop
         self.standby_for: int | None = None  # the incarnation whose successor is on standby
+        self.crashes_total = 0
+        self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
+        self.last_checkpoint_at: float | None = None  # monotonic
         self.replay_pub: Publisher = sup.ros_node.create_publisher(
             UInt8MultiArray, protocol.replay_topic(cfg.name), protocol.REPLAY_QOS
         )
@@ -307,6 +314,7 @@ class ManagedNode:
             self._drop_standby()
             self._end_recovery()
             return
+        self.crashes_total += 1
         ran_for = 0.0 if self.running_since is None else ev.at - self.running_since
         self.running_since = None
         was_recovering = self.sm.recovering
@@ -400,6 +408,7 @@ class ManagedNode:
                 status.get('seq'), status.get('cut'), status.get('bytes'),
                 float(status.get('stall_ms', 0.0)),
             )
+            self.last_checkpoint_at = time.monotonic()
             self.sup.events_log.write('checkpoint', self.id, **_fields(status))
         elif kind == StatusKind.SWITCHED:
             topic = str(status.get('topic'))
@@ -485,6 +494,7 @@ class ManagedNode:
         rec = self.recovery
         if rec is not None and self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING):
             timing = rec.s4_release(stats)
+            self.last_recovery = (timing['total_ms'], time.monotonic())
             self.sm.change_state(NodeState.RUNNING, 'released')
             _logger.info(
                 '%s %s: recovered in %.1f ms (%s; crashes %d; replayed %s, duplicates skipped %s)',
@@ -507,6 +517,25 @@ class ManagedNode:
             self.recovery.finish()
             self.sup.safety.release(self.id)
             self.recovery = None
+
+    def health(self, now: float) -> NodeHealth:
+        """This node as /diagnostics shows it."""
+        standby = 'off'
+        if self.cfg.warm_standby:
+            find = getattr(self.sup.launcher, 'standby', None)
+            waiting = find(self.cfg.command, self.sup.config.folder) if find else None
+            standby = ('none' if waiting is None
+                       else 'ready' if waiting.ready_at is not None else 'starting')
+        last = self.last_recovery
+        return NodeHealth(
+            node=self.id, state=self.sm.state, method=self.cfg.method.value,
+            pid=self.child.pid if self.child is not None else None,
+            incarnation=self.incarnation, crashes=self.crashes_total,
+            last_recovery_ms=last[0] if last else None,
+            last_recovery_age_s=age(last[1], now) if last else None,
+            last_checkpoint_age_s=age(self.last_checkpoint_at, now),
+            standby=standby,
+        )
 
     def _prepare_standby(self) -> None:
         """Start the process that will replace this one at its next crash."""
@@ -740,6 +769,8 @@ class Supervisor:
         self.events_log = EventLog(self.config.store / 'events.jsonl')
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         self.ros_node = Node('rory_supervisor')
+        self.reporter = Reporter(self.ros_node)
+        self.events_log.listeners.append(self.reporter.event)
         if any(n.method.logs for n in self.config.nodes):
             # The recovery log needs the typestore at a crash; load it now, not then (~0.1 s).
             threading.Thread(target=default_typestore, daemon=True).start()
@@ -805,6 +836,8 @@ class Supervisor:
             now = time.monotonic()
             for node in self.nodes.values():
                 node.tick(now)
+            if self.reporter.due(now):
+                self.reporter.diagnostics(n.health(now) for n in self.nodes.values())
             states = {n.sm.state for n in self.nodes.values()}
             if states <= {NodeState.EXITED, NodeState.FATAL}:
                 failed = NodeState.FATAL in states

@@ -1,0 +1,145 @@
+"""What the supervisor tells the rest of the robot: ``/diagnostics`` and ``/rory/events``.
+
+``/diagnostics`` (diagnostic_msgs/DiagnosticArray, once a second, as diagnostic_updater
+publishes) carries one status per supervised node, named ``rory: <node>``, so that
+rqt_robot_monitor, diagnostic_aggregator and any fleet dashboard show it beside the robot's
+other health. Its level follows the node's state: OK while it runs (or has finished), WARN while
+it starts or recovers, ERROR once the supervisor has given up. Its values: state, pid,
+incarnation, method, crashes, last recovery time, age of the last checkpoint, warm standby.
+
+``/rory/events`` (std_msgs/String, one JSON object per message, reliable, the last 100 kept for
+late subscribers) carries every record of ``events.jsonl`` as it is written: state changes,
+spawns, recoveries with their S1-S4 times, checkpoints, quarantined messages.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, Final
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from .states import NodeState
+
+DIAGNOSTICS_TOPIC: Final = '/diagnostics'
+EVENTS_TOPIC: Final = '/rory/events'
+DIAGNOSTICS_PERIOD: Final = 1.0
+"""Seconds between /diagnostics messages (diagnostic_updater's default rate)."""
+
+EVENTS_QOS: Final = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+_WARN_STATES: Final = frozenset({
+    NodeState.STOPPED, NodeState.STARTING, NodeState.ARMING, NodeState.CRASHED,
+    NodeState.BACKOFF, NodeState.RESTORING, NodeState.REPLAYING, NodeState.STOPPING,
+})
+
+
+@dataclass(frozen=True)
+class NodeHealth:
+    """One supervised node as /diagnostics shows it."""
+
+    node: str
+    state: NodeState
+    method: str
+    pid: int | None
+    incarnation: int
+    crashes: int
+    last_recovery_ms: float | None
+    last_recovery_age_s: float | None
+    last_checkpoint_age_s: float | None
+    standby: str  # 'ready', 'starting', 'none' or 'off'
+
+
+OK: Final[bytes] = bytes(DiagnosticStatus.OK)
+WARN: Final[bytes] = bytes(DiagnosticStatus.WARN)
+ERROR: Final[bytes] = bytes(DiagnosticStatus.ERROR)
+
+
+def level_of(state: NodeState) -> bytes:
+    """The diagnostic level for a node in ``state``."""
+    if state == NodeState.FATAL:
+        return ERROR
+    if state in _WARN_STATES:
+        return WARN
+    return OK
+
+
+def _message(health: NodeHealth) -> str:
+    if health.state == NodeState.FATAL:
+        return f'gave up after {health.crashes} crashes; the safe state is held'
+    if health.state == NodeState.EXITED:
+        return 'finished (exit status 0)'
+    if health.state == NodeState.RUNNING:
+        return 'running' if health.crashes == 0 else f'running; recovered {health.crashes}x'
+    return health.state.value.lower()
+
+
+def _number(value: float | None, digits: int = 1) -> str:
+    return '' if value is None else f'{value:.{digits}f}'
+
+
+def node_status(health: NodeHealth) -> DiagnosticStatus:
+    """The DiagnosticStatus of one node."""
+    values = {
+        'state': health.state.value,
+        'method': health.method,
+        'pid': '' if health.pid is None else str(health.pid),
+        'incarnation': str(health.incarnation),
+        'crashes': str(health.crashes),
+        'last recovery (ms)': _number(health.last_recovery_ms),
+        'last recovery age (s)': _number(health.last_recovery_age_s),
+        'last checkpoint age (s)': _number(health.last_checkpoint_age_s),
+        'warm standby': health.standby,
+    }
+    return DiagnosticStatus(
+        level=level_of(health.state),
+        name=f'rory: {health.node}',
+        message=_message(health),
+        hardware_id=health.node,
+        values=[KeyValue(key=k, value=v) for k, v in values.items()],
+    )
+
+
+class Reporter:
+    """Publishes /diagnostics and /rory/events from the supervisor's own ROS node."""
+
+    def __init__(self, ros_node: Node) -> None:
+        self._node = ros_node
+        self._diagnostics = ros_node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self._events = ros_node.create_publisher(String, EVENTS_TOPIC, EVENTS_QOS)
+        self._next = 0.0
+
+    def event(self, record: dict[str, Any]) -> None:
+        """Publish one event record (as written to events.jsonl)."""
+        self._events.publish(String(data=json.dumps(record, sort_keys=True)))
+
+    def due(self, now: float) -> bool:
+        """Whether the next /diagnostics message is due (and, if so, schedule the one after)."""
+        if now < self._next:
+            return False
+        self._next = now + DIAGNOSTICS_PERIOD
+        return True
+
+    def diagnostics(self, nodes: Iterable[NodeHealth]) -> None:
+        """Publish one DiagnosticArray with a status per node."""
+        array = DiagnosticArray(status=[node_status(h) for h in nodes])
+        array.header.stamp = self._node.get_clock().now().to_msg()
+        self._diagnostics.publish(array)
+
+
+def age(since: float | None, now: float | None = None) -> float | None:
+    """Seconds since a monotonic time, or None."""
+    if since is None:
+        return None
+    return (time.monotonic() if now is None else now) - since

@@ -1,0 +1,117 @@
+"""A real supervisor's /diagnostics and /rory/events, heard by an ordinary ROS subscriber."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import String
+
+from rory_eval.scenario import prepare, scenario_env
+from rory_runtime.supervisor.diagnostics import EVENTS_QOS
+
+pytestmark = pytest.mark.ros
+
+
+class _Listener:
+    """Subscribes to /diagnostics and /rory/events in its own context."""
+
+    def __init__(self, domain: int) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.node = Node('diagnostics_listener', context=self.context)
+        self.status: dict[str, str] = {}
+        self.level: bytes | None = None
+        self.events: list[dict[str, Any]] = []
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+        self.node.create_subscription(String, '/rory/events', self._on_event, EVENTS_QOS)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        while self.context.ok():
+            with contextlib.suppress(Exception):
+                self.executor.spin_once(timeout_sec=0.05)
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == 'rory: integrator':
+                self.status = {kv.key: kv.value for kv in status.values}
+                self.level = status.level
+
+    def _on_event(self, msg: String) -> None:
+        self.events.append(json.loads(msg.data))
+
+    def close(self) -> None:
+        self.context.try_shutdown()
+        self.thread.join(timeout=2.0)
+
+
+def _wait_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out waiting for {what}')
+        time.sleep(0.05)
+
+
+@pytest.fixture
+def listener(ros_domain: int) -> Iterator[_Listener]:
+    made = _Listener(ros_domain)
+    yield made
+    made.close()
+
+
+def test_diagnostics_and_events_follow_a_crash_and_its_recovery(
+    tmp_path: Path, ros_domain: int, listener: _Listener
+) -> None:
+    config = prepare(tmp_path, 'rory', interval=0.5, pace='fast')
+    sup = subprocess.Popen(
+        [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
+        env=scenario_env(ros_domain), cwd=tmp_path, stdout=subprocess.DEVNULL,
+        stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        _wait_for(lambda: listener.status.get('state') == 'RUNNING'
+                  and listener.status.get('last checkpoint age (s)', '') != '', 30,
+                  'a RUNNING node with a checkpoint on /diagnostics')
+        assert listener.level == DiagnosticStatus.OK
+        assert listener.status['crashes'] == '0' and listener.status['method'] == 'rory'
+        pid = int(listener.status['pid'])
+        _wait_for(lambda: listener.status.get('warm standby') == 'ready', 20, 'a ready standby')
+        os.kill(pid, signal.SIGKILL)
+        _wait_for(lambda: listener.status.get('crashes') == '1'
+                  and listener.status.get('state') == 'RUNNING', 30,
+                  'the recovered node on /diagnostics')
+        assert float(listener.status['last recovery (ms)']) > 0
+        assert int(listener.status['pid']) != pid
+        kinds = [e['kind'] for e in listener.events]
+        assert {'spawn', 'state', 'checkpoint', 'exit', 'recovered'} <= set(kinds)
+        states = [e['new'] for e in listener.events if e['kind'] == 'state']
+        assert states[:3] == ['STARTING', 'ARMING', 'RUNNING']
+        assert {'CRASHED', 'RESTORING', 'REPLAYING'} <= set(states)
+    finally:
+        os.killpg(sup.pid, signal.SIGINT)
+        try:
+            sup.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(sup.pid, signal.SIGKILL)
+            sup.wait()

@@ -1,0 +1,66 @@
+"""What /diagnostics says about a node, state by state (no ROS: the messages are built only)."""
+
+from __future__ import annotations
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticStatus
+
+from rory_runtime.supervisor.diagnostics import NodeHealth, level_of, node_status
+from rory_runtime.supervisor.states import NodeState
+
+
+def _health(state: NodeState, **kw: object) -> NodeHealth:
+    fields: dict[str, object] = dict(
+        node='mapper', state=state, method='rory', pid=42, incarnation=3, crashes=2,
+        last_recovery_ms=143.25, last_recovery_age_s=12.0, last_checkpoint_age_s=0.4,
+        standby='ready')
+    fields.update(kw)
+    return NodeHealth(**fields)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(('state', 'level'), [
+    (NodeState.RUNNING, DiagnosticStatus.OK),
+    (NodeState.EXITED, DiagnosticStatus.OK),
+    (NodeState.STARTING, DiagnosticStatus.WARN),
+    (NodeState.CRASHED, DiagnosticStatus.WARN),
+    (NodeState.BACKOFF, DiagnosticStatus.WARN),
+    (NodeState.RESTORING, DiagnosticStatus.WARN),
+    (NodeState.REPLAYING, DiagnosticStatus.WARN),
+    (NodeState.FATAL, DiagnosticStatus.ERROR),
+])
+def test_the_level_follows_the_state(state: NodeState, level: bytes) -> None:
+    assert level_of(state) == level
+
+
+def test_every_state_has_a_level() -> None:
+    for state in NodeState:
+        assert level_of(state) in (DiagnosticStatus.OK, DiagnosticStatus.WARN,
+                                   DiagnosticStatus.ERROR)
+
+
+def test_a_running_node_says_how_often_it_was_recovered() -> None:
+    status = node_status(_health(NodeState.RUNNING))
+    assert status.name == 'rory: mapper' and status.hardware_id == 'mapper'
+    assert status.level == DiagnosticStatus.OK
+    assert status.message == 'running; recovered 2x'
+    values = {kv.key: kv.value for kv in status.values}
+    assert values == {
+        'state': 'RUNNING', 'method': 'rory', 'pid': '42', 'incarnation': '3', 'crashes': '2',
+        'last recovery (ms)': '143.2', 'last recovery age (s)': '12.0',
+        'last checkpoint age (s)': '0.4', 'warm standby': 'ready',
+    }
+
+
+def test_a_node_given_up_on_is_an_error_that_says_the_safe_state_is_held() -> None:
+    status = node_status(_health(NodeState.FATAL, pid=None, crashes=6))
+    assert status.level == DiagnosticStatus.ERROR
+    assert 'gave up after 6 crashes' in status.message and 'safe state' in status.message
+    assert {kv.key: kv.value for kv in status.values}['pid'] == ''
+
+
+def test_unknowns_are_empty_not_zero() -> None:
+    status = node_status(_health(NodeState.STARTING, last_recovery_ms=None,
+                                 last_recovery_age_s=None, last_checkpoint_age_s=None))
+    values = {kv.key: kv.value for kv in status.values}
+    assert values['last recovery (ms)'] == '' and values['last checkpoint age (s)'] == ''
+    assert status.message == 'starting'

@@ -1,4 +1,4 @@
-"""The ``rory`` command: ``rory supervise CONFIG.yaml``, ``rory sim ...``, ``rory eval ...``."""
+"""The ``rory`` command: ``supervise CONFIG.yaml``, ``sim``, ``eval`` and ``inspect``."""
 
 from __future__ import annotations
 
@@ -28,6 +28,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from sim.cli import main as sim_main
 
         return sim_main(argv[1:])
+    if argv[:1] == ['inspect']:
+        from .inspection import main as inspect_main
+
+        return inspect_main(argv[1:])
     if argv[:1] == ['eval']:
         # The evaluation (rory_eval/evaluation) is a separate program that drives this one;
         # nothing in RORY imports it, so it is run, not imported.
@@ -53,6 +57,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    add_help=False)
     sub.add_parser('eval', help="the paper's Tables I-IV and figures from real runs "
                                 '(rory eval --help)', add_help=False)
+    sub.add_parser('inspect', help="a store's nodes, checkpoints and log segments "
+                                   '(rory inspect --help)', add_help=False)
     args = parser.parse_args(argv)
 
     logging.basicConfig(

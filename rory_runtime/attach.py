@@ -79,6 +79,7 @@ from .protocol import (
     Mode,
     StatusKind,
 )
+from .qos import offered_qos
 from .state import CheckpointSpec, read_state, write_state
 from .store import Checkpoint, CheckpointStore
 
@@ -719,9 +720,11 @@ class NodeRuntime:
         if self.writer is None:
             self.writer = self.segments.open(self.next_segment)
             self.next_segment += 1
+        node = self.node
         try:
             self.writer.write(
-                inp.topic, inp.type_name, int(info['received_timestamp']), ident[0], ident[1], raw
+                inp.topic, inp.type_name, int(info['received_timestamp']), ident[0], ident[1], raw,
+                offered_qos=None if node is None else lambda: offered_qos(node, inp.topic),
             )
         except LogError as err:
             self._error(f'cannot log a message of {inp.topic}: {err}')

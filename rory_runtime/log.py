@@ -34,7 +34,7 @@ import os
 import re
 import shutil
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import suppress
 from dataclasses import dataclass
 from functools import cache
@@ -42,7 +42,7 @@ from io import BytesIO
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO, Final, Literal
 
-from rosbags.interfaces import Connection, ConnectionExtRosbag2, MessageDefinitionFormat
+from rosbags.interfaces import Connection, ConnectionExtRosbag2, MessageDefinitionFormat, Qos
 from rosbags.rosbag2 import CompressionMode, StoragePlugin, Writer, WriterError
 from rosbags.rosbag2.storage_mcap import (
     Channel,
@@ -267,6 +267,7 @@ class SegmentWriter:
         source_ns: int,
         seq: int,
         data: bytes,
+        offered_qos: Callable[[], Sequence[Qos]] | None = None,
     ) -> None:
         """Append one message.
 
@@ -277,6 +278,8 @@ class SegmentWriter:
             source_ns: Publisher's source timestamp (ns).
             seq: Publisher sequence number; stored truncated to u32.
             data: CDR bytes as received.
+            offered_qos: The topic's publishers' QoS, asked for only when the segment first
+                logs this topic (stored as rosbag2's ``offered_qos_profiles``).
 
         Raises:
             LogError: Unknown message type, a time outside u64, the segment is closed, or
@@ -287,7 +290,7 @@ class SegmentWriter:
             raise LogError(self.path, self._refusal(topic))
         connection = self._connections.get((topic, msgtype))
         if connection is None:
-            connection = self._add_connection(topic, msgtype)
+            connection = self._add_connection(topic, msgtype, offered_qos)
         try:
             self._bag.write_identified(connection, recv_ns, source_ns, seq & _SEQ_MASK, data)
         except struct.error:
@@ -335,10 +338,13 @@ class SegmentWriter:
         self.close()
         return False
 
-    def _add_connection(self, topic: str, msgtype: str) -> Connection:
+    def _add_connection(self, topic: str, msgtype: str,
+                        offered_qos: Callable[[], Sequence[Qos]] | None) -> Connection:
         typestore = self._typestore if self._typestore is not None else default_typestore()
+        qos = tuple(offered_qos()) if offered_qos is not None else ()
         try:
-            connection = self._bag.add_connection(topic, msgtype, typestore=typestore)
+            connection = self._bag.add_connection(topic, msgtype, typestore=typestore,
+                                                  offered_qos_profiles=qos)
         except (TypesysError, KeyError):
             msg = f'topic {topic!r}: message type {msgtype!r} is not in the typestore'
             raise LogError(self.path, msg) from None

@@ -6,6 +6,8 @@ import json
 from pathlib import Path
 
 import pytest
+from rosbags.interfaces import QosReliability
+from rosbags.rosbag2 import Reader
 
 from rory_eval.recording_bench import (
     STREAMS,
@@ -116,3 +118,11 @@ def test_recording_keeps_up_with_the_sensor_load(tmp_path: Path, ros_domain: int
         assert result['rory']['received'][topic] == published
         assert result['rory']['recorded'][topic] == published, report
         assert result['rory']['sequences'][topic] == f'1-{published}'
+    # Each segment says, as ros2 bag record would, what QoS the publishers offered.
+    segments = SegmentStore(out / 'store', 'sensor_sink')
+    for n in segments.numbers():
+        with Reader(segments.path(n)) as bag:
+            for connection in bag.connections:
+                offered = connection.ext.offered_qos_profiles  # type: ignore[union-attr]
+                assert offered, f'segment {n} {connection.topic}: no offered QoS'
+                assert {q.reliability for q in offered} == {QosReliability.RELIABLE}

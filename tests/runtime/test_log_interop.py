@@ -12,11 +12,15 @@ import pytest
 from mcap.exceptions import EndOfFile
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosReliability, QosTime
+from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import LaserScan
 from std_msgs.msg import Int64
 
 from rory_runtime.log import SegmentWriter
+from rory_runtime.qos import to_rosbag
 
 
 def _write(segment: Path, *, close: bool) -> SegmentWriter:
@@ -89,3 +93,28 @@ class _Unseekable:
 
     def seekable(self) -> bool:
         return False
+
+
+def test_the_publishers_qos_is_stored_as_ros2_bag_record_stores_it(tmp_path: Path) -> None:
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    asked: list[str] = []
+
+    def offered() -> list[Qos]:
+        asked.append('/map')
+        return [to_rosbag(latched)]
+
+    segment = tmp_path / 'seg'
+    writer = SegmentWriter(segment)
+    for i in range(3):
+        writer.write('/map', 'std_msgs/msg/Int64', 1_000 + i, 7, i + 1,
+                     serialize_message(Int64(data=i)), offered_qos=offered)
+    writer.close()
+    assert asked == ['/map']  # once per topic and segment, not per message
+    with Reader(segment) as bag:
+        (connection,) = bag.connections
+        (qos,) = connection.ext.offered_qos_profiles  # type: ignore[union-attr]
+    assert qos.durability == QosDurability.TRANSIENT_LOCAL
+    assert qos.reliability == QosReliability.RELIABLE
+    assert qos.history == QosHistory.KEEP_LAST and qos.depth == 1
+    assert qos.deadline == QosTime(0, 0)

@@ -29,11 +29,12 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from rclpy.publisher import Publisher
+from rosbags.interfaces import Qos
 
 from ..errors import LogError
 from ..log import LogEntry, SegmentStore, SegmentWriter
@@ -78,7 +79,9 @@ class RecoveryLog:
     Entries added after :meth:`seal` are the post-release relay: the node logs those itself.
     """
 
-    def __init__(self, segments: SegmentStore, known: dict[str, set[MessageId]]) -> None:
+    def __init__(self, segments: SegmentStore, known: dict[str, set[MessageId]],
+                 offered_qos: Callable[[str], Sequence[Qos]] | None = None) -> None:
+        self._offered_qos = offered_qos
         self.number = segments.next_number()
         self._writer: SegmentWriter | None = segments.open(self.number)
         self._known = known
@@ -103,9 +106,11 @@ class RecoveryLog:
             else:
                 assert self._writer is not None
                 try:
+                    qos = self._offered_qos
                     self._writer.write(
                         entry.topic, entry.msgtype, entry.recv_ns, entry.source_ns, entry.seq,
                         entry.data,
+                        offered_qos=None if qos is None else lambda: qos(entry.topic),
                     )
                 except LogError as err:
                     _logger.error('%s recovery log: %s', LOG_PREFIX, err)
@@ -301,7 +306,8 @@ class Recovery:
         """S2: the ring takes over the node's inputs; their messages go to R, not to the node."""
         if self.ring is not None and (self.rlog is None or self.rlog.sealed):
             self.rlog = RecoveryLog(
-                self.segments, absorbed_identities(self.checkpoints, self.segments)
+                self.segments, absorbed_identities(self.checkpoints, self.segments),
+                self.ring.offered_qos,
             )
             self.ring.activate(self.rlog.add)
         self.timings.s2_done = time.monotonic()

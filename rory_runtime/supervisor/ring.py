@@ -27,10 +27,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
+from rosbags.interfaces import Qos
 
 from ..log import LogEntry
 from ..msgtypes import get_message_class
 from ..protocol import InputSpec, message_id, ring_depth
+from ..qos import offered_qos
 
 _logger = logging.getLogger('rory.supervisor')
 
@@ -190,6 +192,11 @@ class Ring:
     def publisher_counts(self) -> dict[str, int]:
         """Matched publishers per topic."""
         return {topic: t.publisher_count() for topic, t in self.topics.items()}
+
+    def offered_qos(self, topic: str) -> list[Qos]:
+        """The QoS the topic's publishers offer, as this ring's reader sees them."""
+        reader = self.topics.get(topic)
+        return [] if reader is None else offered_qos(reader.node, topic)
 
     def activate(self, sink: Sink) -> None:
         """Activate every topic: ``sink`` gets what they held, in receive order, then each new

@@ -13,6 +13,8 @@ from typing import Any
 
 import pytest
 import yaml
+from rosbags.interfaces import QosDurability, QosReliability
+from rosbags.rosbag2 import Reader
 
 from rory_eval.scenario import Kill, prepare, run, scenario_env
 
@@ -103,6 +105,17 @@ def test_a_crash_is_recovered_by_the_warm_standby(tmp_path: Path, ros_domain: in
     assert [s['warm'] for s in spawns[:2]] == [False, True]
     assert spawns[1]['pid'] == standby['pid'] and standby['incarnation'] == 1
     assert len(result.recoveries) == 1
+    # Every closed segment, the node's and the supervisor's recovery log alike, says what QoS
+    # the publisher offered (count_publisher: reliable, volatile).
+    closed = [p.parent for p in (tmp_path / 'store-rory').glob('integrator/log/*/metadata.yaml')]
+    assert len(closed) >= 2
+    for segment in closed:
+        with Reader(segment) as bag:
+            for connection in bag.connections:
+                (qos,) = connection.ext.offered_qos_profiles  # type: ignore[union-attr]
+                # (Discovery does not carry a writer's history or depth: 0, as ros2 bag record has.)
+                assert (qos.reliability, qos.durability) == (
+                    QosReliability.RELIABLE, QosDurability.VOLATILE), segment
 
 
 def test_crash_loop_backs_off_then_gives_up(

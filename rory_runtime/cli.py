@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 from collections.abc import Sequence
@@ -15,8 +16,15 @@ def _supervise(args: argparse.Namespace) -> int:
     from .supervisor.supervisor import StartMode, Supervisor
 
     config = load_config(args.config)
+    ros_args = tuple(args.ros_args)
+    if ros_args:
+        # Passed through to every node, after its own arguments (a second --ros-args section
+        # is valid), as launch passes global arguments.
+        config = dataclasses.replace(config, nodes=tuple(
+            dataclasses.replace(node, command=(*node.command, '--ros-args', *ros_args))
+            for node in config.nodes))
     start: StartMode = 'fresh' if args.fresh else 'resume' if args.resume else 'auto'
-    return Supervisor(config, start=start).run()
+    return Supervisor(config, start=start, ros_args=ros_args).run()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -44,7 +52,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('-v', '--verbose', action='store_true', help='debug logging')
     sub = parser.add_subparsers(dest='command', required=True)
     supervise = sub.add_parser('supervise', help='run nodes and recover them when they crash')
-    supervise.add_argument('config', help='supervisor configuration (YAML)')
+    supervise.add_argument('config', help='supervisor configuration (YAML); then optionally '
+                           '--ros-args ... for the supervisor and every node')
     start = supervise.add_mutually_exclusive_group()
     start.add_argument('--fresh', action='store_true',
                        help='start every node empty, setting an earlier run aside in '
@@ -59,7 +68,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 '(rory eval --help)', add_help=False)
     sub.add_parser('inspect', help="a store's nodes, checkpoints and log segments "
                                    '(rory inspect --help)', add_help=False)
+    # Everything after --ros-args is ROS's (remaps, parameters, log levels), as for any node.
+    ros_args: list[str] = []
+    if '--ros-args' in argv:
+        at = argv.index('--ros-args')
+        argv, ros_args = argv[:at], argv[at + 1:]
+        if ros_args[-1:] == ['--']:
+            ros_args = ros_args[:-1]
     args = parser.parse_args(argv)
+    args.ros_args = ros_args
 
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,

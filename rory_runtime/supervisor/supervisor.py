@@ -19,7 +19,7 @@ import shutil
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -126,6 +126,29 @@ class Stop:
 
 
 Event = ChildExited | StatusReceived | Released | Stop
+
+
+class RosoutHandler(logging.Handler):
+    """Forwards RORY's log records to an rclpy logger, so they reach /rosout and ROS's log
+    files with the supervisor's node name, as every other node's log does."""
+
+    def __init__(self, ros_logger: Any) -> None:
+        super().__init__()
+        self._ros = ros_logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = record.getMessage()
+            if record.levelno >= logging.ERROR:
+                self._ros.error(text)
+            elif record.levelno >= logging.WARNING:
+                self._ros.warning(text)
+            elif record.levelno >= logging.INFO:
+                self._ros.info(text)
+            else:
+                self._ros.debug(text)
+        except Exception:  # logging must never take the supervisor down
+            self.handleError(record)
 
 
 class EventLog:
@@ -665,8 +688,11 @@ class Supervisor:
     """Runs the configured nodes until stopped by a signal or until they have all ended."""
 
     def __init__(self, config: SupervisorConfig, launcher: Launcher | None = None,
-                 start: StartMode = 'auto') -> None:
+                 start: StartMode = 'auto', ros_args: Sequence[str] = ()) -> None:
         self.config = config
+        # ROS arguments of `rory supervise ... --ros-args ...`: for the supervisor's own node
+        # (e.g. use_sim_time, a namespace) and, appended to their commands, for every node.
+        self.ros_args = tuple(ros_args)
         self.start_mode = start
         self.launcher: Launcher = launcher or WarmLauncher()
         self.events: queue.Queue[Event] = queue.Queue()
@@ -767,8 +793,12 @@ class Supervisor:
         if not resume:
             self._prepare_store()
         self.events_log = EventLog(self.config.store / 'events.jsonl')
-        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        # Its log goes to /rosout through rclpy (RosoutHandler); the console already has it.
+        rclpy.init(args=['rory', '--ros-args', '--disable-stdout-logs', *self.ros_args],
+                   signal_handler_options=SignalHandlerOptions.NO)
         self.ros_node = Node('rory_supervisor')
+        rosout = RosoutHandler(self.ros_node.get_logger())
+        logging.getLogger('rory').addHandler(rosout)
         self.reporter = Reporter(self.ros_node)
         self.events_log.listeners.append(self.reporter.event)
         if any(n.method.logs for n in self.config.nodes):
@@ -804,6 +834,7 @@ class Supervisor:
             if spinner.is_alive():
                 spinner.join(timeout=2.0)
             executor.shutdown(timeout_sec=1.0)
+            logging.getLogger('rory').removeHandler(rosout)
             self.ros_node.destroy_node()
             self.events_log.close()
             restore_signals()

@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import Log
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -40,7 +41,10 @@ class _Listener:
         self.status: dict[str, str] = {}
         self.level: bytes | None = None
         self.events: list[dict[str, Any]] = []
+        self.rosout: list[tuple[str, str]] = []
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+        self.node.create_subscription(
+            Log, '/rosout', lambda m: self.rosout.append((m.name, m.msg)), 100)
         self.node.create_subscription(String, '/rory/events', self._on_event, EVENTS_QOS)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -108,6 +112,32 @@ def test_diagnostics_and_events_follow_a_crash_and_its_recovery(
         states = [e['new'] for e in listener.events if e['kind'] == 'state']
         assert states[:3] == ['STARTING', 'ARMING', 'RUNNING']
         assert {'CRASHED', 'RESTORING', 'REPLAYING'} <= set(states)
+    finally:
+        os.killpg(sup.pid, signal.SIGINT)
+        try:
+            sup.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(sup.pid, signal.SIGKILL)
+            sup.wait()
+
+
+def test_ros_args_reach_the_supervisor_and_every_node_and_its_log_reaches_rosout(
+    tmp_path: Path, ros_domain: int, listener: _Listener
+) -> None:
+    config = prepare(tmp_path, 'rory', interval=0.5, pace='fast')
+    sup = subprocess.Popen(
+        [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config),
+         '--ros-args', '-r', '__ns:=/robot1'],
+        env=scenario_env(ros_domain), cwd=tmp_path, stdout=subprocess.DEVNULL,
+        stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wanted = {('integrator', '/robot1'), ('rory_supervisor', '/robot1')}
+        _wait_for(lambda: wanted <= set(listener.node.get_node_names_and_namespaces()), 30,
+                  'the supervisor and the node in the namespace given by --ros-args')
+        _wait_for(lambda: any(name == 'robot1.rory_supervisor'
+                              and '[rory] integrator: ARMING -> RUNNING' in text
+                              for name, text in listener.rosout), 20,
+                  "the supervisor's log on /rosout")
     finally:
         os.killpg(sup.pid, signal.SIGINT)
         try:

@@ -1,4 +1,4 @@
-"""The ``rory`` command: ``supervise CONFIG.yaml``, ``sim``, ``eval`` and ``inspect``."""
+"""The ``rory`` command: supervise, sim, eval, inspect, bundle and reproduce."""
 
 from __future__ import annotations
 
@@ -36,6 +36,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         from sim.cli import main as sim_main
 
         return sim_main(argv[1:])
+    if argv[:1] == ['bundle']:
+        from .bundle import bundle_main
+
+        return bundle_main(argv[1:])
+    if argv[:1] == ['reproduce']:
+        from .bundle import reproduce_main
+
+        return reproduce_main(argv[1:])
     if argv[:1] == ['inspect']:
         from .inspection import main as inspect_main
 
@@ -68,6 +76,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 '(rory eval --help)', add_help=False)
     sub.add_parser('inspect', help="a store's nodes, checkpoints and log segments "
                                    '(rory inspect --help)', add_help=False)
+    sub.add_parser('bundle', help="a node's last checkpoint, the messages after it and its "
+                                  'crash report, as one tar file (rory bundle --help)',
+                   add_help=False)
+    sub.add_parser('reproduce', help='replay a crash bundle until the node crashes again '
+                                     '(rory reproduce --help)', add_help=False)
     # Everything after --ros-args is ROS's (remaps, parameters, log levels), as for any node.
     ros_args: list[str] = []
     if '--ros-args' in argv:

@@ -1,0 +1,96 @@
+"""A node dies on one message on the robot; its bundle makes it die on that message again."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from rory_eval.scenario import EXAMPLE, scenario_env
+from rory_runtime.bundle import bundle_main, reproduce_main
+
+pytestmark = pytest.mark.ros
+
+HERE = Path(__file__).parent / 'bundle_node'
+
+
+def _events(store: Path) -> list[dict[str, Any]]:
+    path = store / 'events.jsonl'
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _wait_for(predicate: Any, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out waiting for {what}')
+        time.sleep(0.05)
+
+
+def test_a_bundle_reproduces_the_crash_on_the_message_that_caused_it(
+    tmp_path: Path, ros_domain: int, capsys: pytest.CaptureFixture[str]
+) -> None:
+    subprocess.run([sys.executable, '-m', 'rory_instrument', str(HERE), '--vars',
+                    str(HERE / 'keyvars.yaml'), '-o', str(tmp_path / 'out')], check=True,
+                   capture_output=True)
+    config = tmp_path / 'supervise.yaml'
+    config.write_text(yaml.safe_dump({
+        'nodes': [{'name': 'fragile', 'command': ['python', 'out/fragile.py'], 'method': 'rory',
+                   'checkpoint_interval': 0.5, 'backoff': {'max_restarts': 1}}],
+        'store': 'store',
+    }))
+    env = scenario_env(ros_domain)
+    store = tmp_path / 'store'
+    sup = subprocess.Popen([sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
+                           env=env, cwd=tmp_path, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        _wait_for(lambda: any(e.get('new') == 'RUNNING' for e in _events(store)), 30, 'RUNNING')
+        _wait_for(lambda: any(e['kind'] == 'checkpoint' for e in _events(store)), 10,
+                  'a checkpoint')
+        subprocess.run([sys.executable, str(EXAMPLE / 'count_publisher.py'), '20', '20', '2'],
+                       env=env, cwd=tmp_path, check=True, timeout=60)
+        # It dies on 13, is recovered, dies on 13 again: 13 is quarantined and, with
+        # max_restarts 1, the supervisor gives up, leaving the store as the robot would.
+        _wait_for(lambda: any(e['kind'] == 'fatal' for e in _events(store)), 60, 'FATAL')
+    finally:
+        os.killpg(sup.pid, signal.SIGINT)
+        sup.wait(timeout=20)
+    assert any(e['kind'] == 'quarantined' for e in _events(store))
+
+    crash = tmp_path / 'crash.tar'
+    assert bundle_main([str(store), '--node', 'fragile', '-o', str(crash),
+                        '--config', str(config)]) == 0
+    with tarfile.open(crash) as tar:
+        names = tar.getnames()
+    assert 'report.txt' in names and 'bundle.json' in names and 'code/fragile.py' in names
+    assert any(n.startswith('store/fragile/checkpoints/') for n in names)
+    assert any(n.startswith('quarantine/') for n in names)
+
+    # Elsewhere (another folder, another domain): it dies on 13 again.
+    capsys.readouterr()
+    code = reproduce_main([str(crash), '-C', str(tmp_path / 'desk'), '--timeout', '60',
+                           '--domain', str(ros_domain)])
+    out = capsys.readouterr().out
+    assert code == 0, out + (tmp_path / 'desk' / 'supervisor.log').read_text()[-3000:]
+    assert 'REPRODUCED: fragile died (killed by signal 6)' in out
+    assert 'while applying /numbers' in out and 'seq 13)' in out  # the 13th message: 13
+
+
+def test_bad_input_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert bundle_main([str(tmp_path), '--node', 'ghost', '-o', str(tmp_path / 'x.tar')]) == 2
+    assert "no node 'ghost'" in capsys.readouterr().err
+    (tmp_path / 'junk.tar').write_bytes(b'not a tar file')
+    assert reproduce_main([str(tmp_path / 'junk.tar'), '-C', str(tmp_path / 'd')]) == 2
+    assert 'junk.tar: not a readable bundle' in capsys.readouterr().err

@@ -421,6 +421,11 @@ class NodeRuntime:
         self.windows: dict[str, _Window] = {}
         self.shadow_topics: set[str] = set()
         self.pending_live: dict[str, list[tuple[MessageId, bytes, dict[str, Any]]]] = {}
+        # Every identity the shadow topic delivered (applied or skipped) while its topic waits
+        # for the switch. The live copies buffered meanwhile are the same messages, and far
+        # more of them than the window of recent identities can hold in a long replay; this
+        # set, dropped at the switch, is what keeps them from being applied twice.
+        self.shadow_seen: dict[str, set[MessageId]] = {}
         self.handover: dict[str, _Handover] = {}
         self.orphans: dict[str, list[protocol.Msg]] = {}
         self.held_timers: list[Timer] = []
@@ -657,6 +662,7 @@ class NodeRuntime:
         relayed = bool(msg.flags & FLAG_RELAY)
         if relayed:
             self._note_relayed(msg.topic, msg.ident)
+        self.shadow_seen.setdefault(msg.topic, set()).add(msg.ident)
         if self._is_quarantined(msg.topic, msg.ident):
             pass
         elif msg.ident in self.windows[msg.topic]:
@@ -764,7 +770,7 @@ class NodeRuntime:
             self.pending_live[topic] = []
         backlog.sort(key=lambda item: item[0])
         for _, inp, ident, raw, info in backlog:
-            if ident in self.windows[inp.topic]:
+            if ident in self.windows[inp.topic] or ident in self.shadow_seen.get(inp.topic, ()):
                 self.stats['duplicates'] += 1
             elif not self._is_quarantined(inp.topic, ident):
                 self._apply(inp, raw, info, ident, log=True)
@@ -794,6 +800,7 @@ class NodeRuntime:
         with self.lock:
             self.shadow_topics.discard(topic)
             self._drain_pending([topic])
+            self.shadow_seen.pop(topic, None)
         self.handover.pop(topic, None)
         self._status(StatusKind.SWITCHED, topic=topic)
 

@@ -128,6 +128,29 @@ def test_handover_switches_after_confirmations_without_loss_or_repeats(
     assert applied == [1, 2, 3, 4, 5, 6, 7]
 
 
+def test_a_long_recovery_applies_nothing_twice_however_many_live_messages_wait(
+    tmp_path: Path, applied: list[int]
+) -> None:
+    # 50 Hz at depth 10 through a 3 s paced replay: 150 live messages wait while the same
+    # messages come through the shadow topic, far more than the window of recent identities
+    # holds (depth + 80). At the switch, the early ones have left the window; they were
+    # applied all the same and must not be applied again.
+    rt = _runtime(tmp_path, Mode.RECOVER)
+    sub = _adopt(rt, applied)
+    assert protocol.window_size(rt.inputs['/numbers'].spec) < 150
+    for n in range(1, 151):
+        _live(sub, n)
+        rt._from_shadow(_shadow(n))
+    rt._open_gates(next_segment=5)
+    for n in range(151, 156):
+        _live(sub, n)
+    for n in range(151, 156):
+        rt._from_shadow(_shadow(n, relay=True))
+    assert '/numbers' not in rt.shadow_topics
+    _live(sub, 156)
+    assert applied == list(range(1, 157))
+
+
 def test_relayed_messages_are_logged_replayed_ones_are_not(
     tmp_path: Path, applied: list[int]
 ) -> None:

@@ -23,9 +23,10 @@ def test_quick_evaluation_writes_the_tables_and_restart_loses_the_map(
         tmp_path: Path, ros_domain: int) -> None:
     out = tmp_path / 'eval'
     # A relative --out, as `make eval` gives it: the supervisor respawns from elsewhere.
+    # Two runs at a time, as `make eval` does (domains ros_domain and the next one).
     done = subprocess.run(
         [sys.executable, '-m', 'rory_eval.evaluation', '--quick', '--out', 'eval',
-         '--domain', str(ros_domain)],
+         '--jobs', '2', '--domain', str(ros_domain)],
         capture_output=True, text=True, timeout=600, check=False, cwd=tmp_path)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     with (out / 'runs.csv').open() as f:
@@ -40,7 +41,7 @@ def test_quick_evaluation_writes_the_tables_and_restart_loses_the_map(
     assert '| grid_slam (hector_mapping) | ✗ | ✓ |' in results  # Table I
     for heading in ('Table I:', 'Table II:', 'Table III:', 'Table IV:'):
         assert heading in results
-    assert '`rory eval --quick --out eval' in results  # the command that made it
+    assert '`rory eval --quick --out eval --jobs 2' in results  # the command that made it
     assert (out / 'figures' / 'grid_slam-office_small.png').stat().st_size > 10_000
     # A second invocation finds every run recorded and only rewrites the report.
     again = subprocess.run(

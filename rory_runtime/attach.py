@@ -71,6 +71,7 @@ from .protocol import (
     ENV_MODE,
     ENV_NODE,
     ENV_QUARANTINE,
+    ENV_SECRET,
     ENV_STORE,
     FLAG_RELAY,
     InputSpec,
@@ -110,6 +111,7 @@ class RuntimeEnv:
     mode: Mode
     interval: float | None  # None: the supervisor config left it to the node's keyvars
     quarantined: frozenset[tuple[str, MessageId]] = frozenset()
+    secret: bytes | None = None  # the run's key: envelopes and statuses are signed with it
 
     @classmethod
     def from_environ(cls, environ: dict[str, str] | None = None) -> RuntimeEnv | None:
@@ -134,6 +136,7 @@ class RuntimeEnv:
                     (str(topic), (int(source_ns), int(seq)))
                     for topic, source_ns, seq in json.loads(env.get(ENV_QUARANTINE) or '[]')
                 ),
+                secret=bytes.fromhex(env[ENV_SECRET]) if env.get(ENV_SECRET) else None,
             )
         except (KeyError, ValueError, TypeError) as err:
             raise RoryError(f'{ENV_NODE} is set but the environment is bad: {err}') from None
@@ -629,7 +632,7 @@ class NodeRuntime:
 
     def _on_envelope(self, raw: bytes, _info: dict[str, Any]) -> None:
         try:
-            envelope = protocol.unpack(raw)
+            envelope = protocol.unpack(raw, self.env.secret)
         except ProtocolError as err:
             self._error(f'malformed envelope on {protocol.replay_topic(self.env.node_id)}: {err}')
             return
@@ -886,7 +889,8 @@ class NodeRuntime:
         if self._status_pub is None:
             return
         text = protocol.encode_status(
-            kind, self.env.node_id, self.env.incarnation, sent_ns=time.time_ns(), **fields
+            kind, self.env.node_id, self.env.incarnation, key=self.env.secret,
+            sent_ns=time.time_ns(), **fields
         )
         self._status_pub.publish(String(data=text))
 

@@ -29,6 +29,8 @@ because it is not in any sealed log segment.
 from __future__ import annotations
 
 import enum
+import hashlib
+import hmac
 import json
 import re
 import struct
@@ -54,6 +56,10 @@ ENV_METHOD: Final = 'RORY_METHOD'
 ENV_MODE: Final = 'RORY_MODE'
 ENV_INTERVAL: Final = 'RORY_CHECKPOINT_INTERVAL'
 ENV_QUARANTINE: Final = 'RORY_QUARANTINE'  # JSON [[topic, source_ns, seq], ...] to skip
+# A key the supervisor draws for each run and gives its nodes through the environment, never
+# over DDS: envelopes and status messages carry an HMAC of it, so another participant on the
+# domain cannot feed a recovering node forged messages or steer its recovery.
+ENV_SECRET: Final = 'RORY_SECRET'  # hex
 
 NODE_ID_RE: Final = re.compile(r'[A-Za-z][A-Za-z0-9_]*')  # use fullmatch
 
@@ -145,20 +151,34 @@ class StatusKind(enum.StrEnum):
     ERROR = 'error'  # something the operator must know (e.g. a variable that cannot be saved)
 
 
-def encode_status(kind: StatusKind, node_id: str, incarnation: int, **fields: Any) -> str:
-    """JSON text of a status message."""
-    return json.dumps(
-        {'kind': kind.value, 'node': node_id, 'incarnation': incarnation, **fields},
-        separators=(',', ':'),
-        sort_keys=True,
-    )
+TAG_BYTES: Final = 16
+"""Length of an HMAC-SHA256 tag as carried (truncated, as RFC 2104 allows)."""
 
 
-def decode_status(text: str) -> dict[str, Any]:
-    """Parse a status message.
+def _tag(key: bytes, data: bytes) -> bytes:
+    return hmac.new(key, data, hashlib.sha256).digest()[:TAG_BYTES]
+
+
+def _canonical(obj: dict[str, Any]) -> str:
+    return json.dumps(obj, separators=(',', ':'), sort_keys=True)
+
+
+def encode_status(kind: StatusKind, node_id: str, incarnation: int, *, key: bytes | None = None,
+                  **fields: Any) -> str:
+    """JSON text of a status message, signed with ``key`` (field ``sig``) when given."""
+    obj = {'kind': kind.value, 'node': node_id, 'incarnation': incarnation, **fields}
+    if key is None:
+        return _canonical(obj)
+    obj['sig'] = _tag(key, _canonical(obj).encode()).hex()
+    return _canonical(obj)
+
+
+def decode_status(text: str, key: bytes | None = None) -> dict[str, Any]:
+    """Parse a status message; with ``key``, only one signed with it.
 
     Raises:
-        ProtocolError: Not a JSON object with kind, node and incarnation.
+        ProtocolError: Not a JSON object with kind, node and incarnation, or (with ``key``)
+            unsigned or signed with another key.
     """
     try:
         obj = json.loads(text)
@@ -166,6 +186,12 @@ def decode_status(text: str) -> dict[str, Any]:
         raise ProtocolError(f'status is not JSON: {err}') from None
     if not isinstance(obj, dict):
         raise ProtocolError('status is not a JSON object')
+    sig = obj.pop('sig', None)
+    if key is not None:
+        if not isinstance(sig, str):
+            raise ProtocolError('status is not signed')
+        if not hmac.compare_digest(sig, _tag(key, _canonical(obj).encode()).hex()):
+            raise ProtocolError('status signature does not match this run\'s key')
     kind = obj.get('kind')
     if kind not in {k.value for k in StatusKind}:
         raise ProtocolError(f'status has unknown kind {kind!r}')
@@ -188,6 +214,7 @@ _CDR_LE = b'\x00\x01\x00\x00'
 _HEAD = struct.Struct('<2sBBI')
 _MAGIC = b'RY'
 _VERSION = 1
+_SIGNED = 2  # version 1 followed by an HMAC tag of the payload
 _SYNC = struct.Struct('<Q')
 _MSG = struct.Struct('<BqqIH')
 _RELEASE = struct.Struct('<QQ')
@@ -274,11 +301,40 @@ def pack_release(incarnation: int, next_segment: int, delivered: int) -> bytes:
     return _wrap(head + _RELEASE.pack(next_segment, delivered))
 
 
-def unpack(raw: bytes) -> Envelope:
-    """Parse a serialized UInt8MultiArray envelope.
+def sign(raw: bytes, key: bytes) -> bytes:
+    """A packed envelope, signed: version 2, the payload followed by its HMAC tag.
 
     Raises:
-        ProtocolError: Anything that is not a well-formed envelope of this version.
+        ProtocolError: ``raw`` is not an unsigned envelope.
+    """
+    if len(raw) < _CDR_PREFIX.size + _HEAD.size:
+        raise ProtocolError(f'envelope too short ({len(raw)} bytes)')
+    _, _, _, length = _CDR_PREFIX.unpack_from(raw)
+    payload = bytearray(raw[_CDR_PREFIX.size : _CDR_PREFIX.size + length])
+    if payload[2] != _VERSION:
+        raise ProtocolError(f'envelope version {payload[2]} cannot be signed')
+    payload[2] = _SIGNED
+    return _wrap(bytes(payload) + _tag(key, bytes(payload)))
+
+
+class SignedPublisher:
+    """Publishes envelopes signed with the run's key (the shadow topic's only writer)."""
+
+    def __init__(self, publisher: Any, key: bytes) -> None:
+        self._publisher = publisher
+        self._key = key
+
+    def publish(self, raw: bytes) -> None:
+        """Sign and publish one packed envelope."""
+        self._publisher.publish(sign(raw, self._key))
+
+
+def unpack(raw: bytes, key: bytes | None = None) -> Envelope:
+    """Parse a serialized UInt8MultiArray envelope; with ``key``, only one signed with it.
+
+    Raises:
+        ProtocolError: Anything that is not a well-formed envelope of this version, or (with
+            ``key``) one not signed with it.
     """
     view = memoryview(raw)
     if len(view) < _CDR_PREFIX.size + _HEAD.size:
@@ -293,8 +349,17 @@ def unpack(raw: bytes) -> Envelope:
         raise ProtocolError(f'envelope payload too short ({length} bytes)')
     off = _CDR_PREFIX.size
     magic, version, kind, incarnation = _HEAD.unpack_from(view, off)
-    if magic != _MAGIC or version != _VERSION:
+    if magic != _MAGIC or version not in (_VERSION, _SIGNED):
         raise ProtocolError(f'bad envelope magic/version {magic!r}/{version}')
+    if key is not None:
+        if version != _SIGNED or length < _HEAD.size + TAG_BYTES:
+            raise ProtocolError('envelope is not signed')
+        end = _CDR_PREFIX.size + length - TAG_BYTES
+        if not hmac.compare_digest(bytes(view[end:]), _tag(key, bytes(view[_CDR_PREFIX.size:end]))):
+            raise ProtocolError('envelope signature does not match this run\'s key')
+        view = view[:end]
+    elif version == _SIGNED:
+        view = view[: len(view) - TAG_BYTES]
     off += _HEAD.size
     try:
         if kind == EnvelopeKind.SYNC:

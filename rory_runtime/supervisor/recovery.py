@@ -33,7 +33,6 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from rclpy.publisher import Publisher
 from rosbags.interfaces import Qos
 
 from ..errors import LogError
@@ -42,6 +41,7 @@ from ..protocol import (
     FLAG_RELAY,
     MessageId,
     ReplayPace,
+    SignedPublisher,
     pack_msg,
     pack_release,
 )
@@ -176,7 +176,7 @@ class ReplayStreamer(threading.Thread):
 
     def __init__(
         self,
-        publisher: Publisher,
+        publisher: SignedPublisher,
         incarnation: int,
         backlog: Iterator[LogEntry],
         rlog: RecoveryLog,
@@ -333,7 +333,7 @@ class Recovery:
 
     def s3_replay(
         self,
-        publisher: Publisher,
+        publisher: SignedPublisher,
         incarnation: int,
         cut: int | None,
         pace: ReplayPace,

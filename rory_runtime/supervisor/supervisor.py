@@ -15,6 +15,7 @@ import logging
 import os
 import queue
 import random
+import secrets
 import shutil
 import signal
 import threading
@@ -29,7 +30,6 @@ import rclpy
 import rclpy.utilities
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.publisher import Publisher
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String, UInt8MultiArray
 
@@ -211,9 +211,9 @@ class ManagedNode:
         self.crashes_total = 0
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
         self.last_checkpoint_at: float | None = None  # monotonic
-        self.replay_pub: Publisher = sup.ros_node.create_publisher(
+        self.replay_pub = protocol.SignedPublisher(sup.ros_node.create_publisher(
             UInt8MultiArray, protocol.replay_topic(cfg.name), protocol.REPLAY_QOS
-        )
+        ), sup.secret)
         def on_status(msg: Any) -> None:
             sup.post_status(cfg.name, str(msg.data))
 
@@ -240,6 +240,7 @@ class ManagedNode:
                 protocol.ENV_METHOD: self.cfg.method.value,
                 protocol.ENV_MODE: mode.value,
                 protocol.ENV_QUARANTINE: self.poison.env_value(),
+                protocol.ENV_SECRET: self.sup.secret.hex(),
                 'PYTHONUNBUFFERED': '1',
             }
         )
@@ -693,6 +694,7 @@ class Supervisor:
         # ROS arguments of `rory supervise ... --ros-args ...`: for the supervisor's own node
         # (e.g. use_sim_time, a namespace) and, appended to their commands, for every node.
         self.ros_args = tuple(ros_args)
+        self.secret = secrets.token_bytes(32)  # this run's key (protocol.ENV_SECRET)
         self.start_mode = start
         self.launcher: Launcher = launcher or WarmLauncher()
         self.events: queue.Queue[Event] = queue.Queue()
@@ -704,7 +706,7 @@ class Supervisor:
     def post_status(self, node_id: str, text: str) -> None:
         """Queue a status message for the main thread."""
         try:
-            status = protocol.decode_status(text)
+            status = protocol.decode_status(text, self.secret)
         except ProtocolError as err:
             _logger.warning('%s %s: ignoring malformed status: %s', LOG_PREFIX, node_id, err)
             return

@@ -16,6 +16,7 @@ from rory_runtime.errors import ProtocolError
 from rory_runtime.protocol import (
     FLAG_RELAY,
     SEQ_MASK,
+    TAG_BYTES,
     EnvelopeKind,
     InputSpec,
     Method,
@@ -31,6 +32,7 @@ from rory_runtime.protocol import (
     pack_sync,
     replay_topic,
     ring_depth,
+    sign,
     status_topic,
     unpack,
     window_size,
@@ -241,7 +243,7 @@ def test_wrong_magic_raises_protocol_error(magic: bytes) -> None:
         unpack(wrap(magic + payload[2:]))
 
 
-@pytest.mark.parametrize('version', [0, 2, 255])
+@pytest.mark.parametrize('version', [0, 3, 255])
 def test_wrong_version_raises_protocol_error(version: int) -> None:
     payload = bytearray(payload_of(pack_sync(1, 2)))
     payload[2] = version
@@ -533,3 +535,36 @@ def test_method_checkpoints_and_logs_truth_table(
 
 def test_method_table_covers_every_method() -> None:
     assert {m.value for m in Method} == {'rory', 'restart', 'checkpoint', 'replay'}
+
+
+KEY = bytes(range(32))
+
+
+@pytest.mark.parametrize('raw', [
+    pack_sync(4, 99), pack_release(4, 7, 8),
+    pack_msg(4, topic='/scan', recv_ns=1, source_ns=2, seq=3, data=b'\x00' * 1001),
+])
+def test_a_signed_envelope_is_read_with_the_runs_key(raw: bytes) -> None:
+    assert unpack(sign(raw, KEY), KEY) == unpack(raw)
+
+
+def test_an_envelope_that_is_unsigned_tampered_or_signed_with_another_key_is_refused() -> None:
+    raw = pack_msg(4, topic='/scan', recv_ns=1, source_ns=2, seq=3, data=b'scan')
+    with pytest.raises(ProtocolError, match='not signed'):
+        unpack(raw, KEY)  # another participant on the domain, without the key
+    forged = bytearray(sign(raw, KEY))
+    forged[-TAG_BYTES - 1] ^= 0x01  # one bit of the message's data
+    with pytest.raises(ProtocolError, match='signature does not match'):
+        unpack(bytes(forged), KEY)
+    with pytest.raises(ProtocolError, match='signature does not match'):
+        unpack(sign(raw, bytes(32)), KEY)
+
+
+def test_a_signed_status_is_read_and_a_forged_one_refused() -> None:
+    text = encode_status(StatusKind.RELEASED, 'mapper', 3, key=KEY, applied=12)
+    assert decode_status(text, KEY) == {'kind': 'released', 'node': 'mapper', 'incarnation': 3,
+                                        'applied': 12}
+    with pytest.raises(ProtocolError, match='signature does not match'):
+        decode_status(text.replace('"applied":12', '"applied":13'), KEY)
+    with pytest.raises(ProtocolError, match='not signed'):
+        decode_status(encode_status(StatusKind.RELEASED, 'mapper', 3, applied=12), KEY)

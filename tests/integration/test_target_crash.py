@@ -25,5 +25,7 @@ def test_killed_target_goes_on_exactly_as_without_the_crash(
     assert [e['code'] for e in events if e['kind'] == 'exit'] == [-9]
     result = compare(reference, crashed, events)
     assert result.recovered_ms is not None
-    assert result.common > 80 and result.crashed < result.reference  # outputs muted while down
+    # Outputs are muted while it is down; from a warm standby that is ~0.2 s, which may fall
+    # between two outputs, so none need be missing.
+    assert result.common > 80 and result.crashed <= result.reference
     assert result.exact, result

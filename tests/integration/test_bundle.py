@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
 import sys
 import tarfile
-import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 import yaml
+from supervision import events, wait_for
 
 from rory_eval.scenario import EXAMPLE, scenario_env
 from rory_runtime.bundle import bundle_main, reproduce_main
@@ -23,19 +21,8 @@ pytestmark = pytest.mark.ros
 HERE = Path(__file__).parent / 'bundle_node'
 
 
-def _events(store: Path) -> list[dict[str, Any]]:
-    path = store / 'events.jsonl'
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def _wait_for(predicate: Any, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f'timed out waiting for {what}')
-        time.sleep(0.05)
 
 
 def test_a_bundle_reproduces_the_crash_on_the_message_that_caused_it(
@@ -56,18 +43,18 @@ def test_a_bundle_reproduces_the_crash_on_the_message_that_caused_it(
                            env=env, cwd=tmp_path, stdout=subprocess.DEVNULL,
                            stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        _wait_for(lambda: any(e.get('new') == 'RUNNING' for e in _events(store)), 30, 'RUNNING')
-        _wait_for(lambda: any(e['kind'] == 'checkpoint' for e in _events(store)), 10,
+        wait_for(lambda: any(e.get('new') == 'RUNNING' for e in events(store)), 30, 'RUNNING')
+        wait_for(lambda: any(e['kind'] == 'checkpoint' for e in events(store)), 10,
                   'a checkpoint')
         subprocess.run([sys.executable, str(EXAMPLE / 'count_publisher.py'), '20', '20', '2'],
                        env=env, cwd=tmp_path, check=True, timeout=60)
         # It dies on 13, is recovered, dies on 13 again: 13 is quarantined and, with
         # max_restarts 1, the supervisor gives up, leaving the store as the robot would.
-        _wait_for(lambda: any(e['kind'] == 'fatal' for e in _events(store)), 60, 'FATAL')
+        wait_for(lambda: any(e['kind'] == 'fatal' for e in events(store)), 60, 'FATAL')
     finally:
         os.killpg(sup.pid, signal.SIGINT)
         sup.wait(timeout=20)
-    assert any(e['kind'] == 'quarantined' for e in _events(store))
+    assert any(e['kind'] == 'quarantined' for e in events(store))
 
     crash = tmp_path / 'crash.tar'
     assert bundle_main([str(store), '--node', 'fragile', '-o', str(crash),

@@ -3,14 +3,11 @@ supervisor: forged envelopes on the shadow topic and forged status messages are 
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 import rclpy
@@ -18,6 +15,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String, UInt8MultiArray
+from supervision import events, wait_for
 
 from rory_eval.scenario import prepare, scenario_env
 from rory_runtime import protocol
@@ -25,23 +23,13 @@ from rory_runtime import protocol
 pytestmark = pytest.mark.ros
 
 
-def _events(path: Path) -> list[dict[str, Any]]:
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def _wait_for(predicate: Any, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f'timed out waiting for {what}')
-        time.sleep(0.05)
 
 
 def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: int) -> None:
     config = prepare(tmp_path, 'rory', interval=0.5, pace='fast')
-    events = tmp_path / 'store-rory' / 'events.jsonl'
+    store = tmp_path / 'store-rory'
     sup = subprocess.Popen(
         [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
         env=scenario_env(ros_domain), cwd=tmp_path, stdout=subprocess.PIPE,
@@ -51,13 +39,13 @@ def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: i
                signal_handler_options=SignalHandlerOptions.NO)
     rogue = Node('rogue', context=context)
     try:
-        _wait_for(lambda: any(e.get('new') == 'RUNNING' for e in _events(events)), 30, 'RUNNING')
-        incarnation = next(e['incarnation'] for e in _events(events) if e['kind'] == 'spawn')
+        wait_for(lambda: any(e.get('new') == 'RUNNING' for e in events(store)), 30, 'RUNNING')
+        incarnation = next(e['incarnation'] for e in events(store) if e['kind'] == 'spawn')
         shadow = rogue.create_publisher(UInt8MultiArray, protocol.replay_topic('integrator'),
                                         protocol.REPLAY_QOS)
         status = rogue.create_publisher(String, protocol.status_topic('integrator'),
                                         protocol.STATUS_QOS)
-        _wait_for(lambda: shadow.get_subscription_count() >= 1
+        wait_for(lambda: shadow.get_subscription_count() >= 1
                   and status.get_subscription_count() >= 1, 20, 'the rogue publishers matched')
         # A message that was never published, pushed into the node as if replayed; and a
         # status that would end a recovery that is not happening.
@@ -66,9 +54,9 @@ def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: i
         shadow.publish(forged)
         status.publish(String(data=protocol.encode_status(
             protocol.StatusKind.RELEASED, 'integrator', incarnation, key=bytes(32))))
-        _wait_for(lambda: any(e['kind'] == 'error' and 'not signed' in e.get('message', '')
-                              for e in _events(events)), 20, "the node's refusal")
-        kinds = [e['kind'] for e in _events(events)]
+        wait_for(lambda: any(e['kind'] == 'error' and 'not signed' in e.get('message', '')
+                              for e in events(store)), 20, "the node's refusal")
+        kinds = [e['kind'] for e in events(store)]
         assert 'exit' not in kinds  # the node goes on
     finally:
         rogue.destroy_node()

@@ -9,8 +9,7 @@ import signal
 import subprocess
 import sys
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +22,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
+from supervision import stop, wait_for
 
 from rory_eval.scenario import prepare, scenario_env
 from rory_runtime.supervisor.diagnostics import EVENTS_QOS
@@ -70,12 +70,6 @@ class _Listener:
         self.thread.join(timeout=2.0)
 
 
-def _wait_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f'timed out waiting for {what}')
-        time.sleep(0.05)
 
 
 @pytest.fixture
@@ -94,15 +88,15 @@ def test_diagnostics_and_events_follow_a_crash_and_its_recovery(
         env=scenario_env(ros_domain), cwd=tmp_path, stdout=subprocess.DEVNULL,
         stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        _wait_for(lambda: listener.status.get('state') == 'RUNNING'
+        wait_for(lambda: listener.status.get('state') == 'RUNNING'
                   and listener.status.get('last checkpoint age (s)', '') != '', 30,
                   'a RUNNING node with a checkpoint on /diagnostics')
         assert listener.level == DiagnosticStatus.OK
         assert listener.status['crashes'] == '0' and listener.status['method'] == 'rory'
         pid = int(listener.status['pid'])
-        _wait_for(lambda: listener.status.get('warm standby') == 'ready', 20, 'a ready standby')
+        wait_for(lambda: listener.status.get('warm standby') == 'ready', 20, 'a ready standby')
         os.kill(pid, signal.SIGKILL)
-        _wait_for(lambda: listener.status.get('crashes') == '1'
+        wait_for(lambda: listener.status.get('crashes') == '1'
                   and listener.status.get('state') == 'RUNNING', 30,
                   'the recovered node on /diagnostics')
         assert float(listener.status['last recovery (ms)']) > 0
@@ -113,12 +107,7 @@ def test_diagnostics_and_events_follow_a_crash_and_its_recovery(
         assert states[:3] == ['STARTING', 'ARMING', 'RUNNING']
         assert {'CRASHED', 'RESTORING', 'REPLAYING'} <= set(states)
     finally:
-        os.killpg(sup.pid, signal.SIGINT)
-        try:
-            sup.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(sup.pid, signal.SIGKILL)
-            sup.wait()
+        stop(sup)
 
 
 def test_ros_args_reach_the_supervisor_and_every_node_and_its_log_reaches_rosout(
@@ -132,16 +121,11 @@ def test_ros_args_reach_the_supervisor_and_every_node_and_its_log_reaches_rosout
         stderr=subprocess.STDOUT, start_new_session=True)
     try:
         wanted = {('integrator', '/robot1'), ('rory_supervisor', '/robot1')}
-        _wait_for(lambda: wanted <= set(listener.node.get_node_names_and_namespaces()), 30,
+        wait_for(lambda: wanted <= set(listener.node.get_node_names_and_namespaces()), 30,
                   'the supervisor and the node in the namespace given by --ros-args')
-        _wait_for(lambda: any(name == 'robot1.rory_supervisor'
+        wait_for(lambda: any(name == 'robot1.rory_supervisor'
                               and '[rory] integrator: ARMING -> RUNNING' in text
                               for name, text in listener.rosout), 20,
                   "the supervisor's log on /rosout")
     finally:
-        os.killpg(sup.pid, signal.SIGINT)
-        try:
-            sup.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(sup.pid, signal.SIGKILL)
-            sup.wait()
+        stop(sup)

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -15,25 +13,16 @@ import pytest
 import yaml
 from rosbags.interfaces import QosDurability, QosReliability
 from rosbags.rosbag2 import Reader
+from supervision import events as read_events
+from supervision import wait_for
 
 from rory_eval.scenario import Kill, prepare, run, scenario_env
 
 pytestmark = pytest.mark.ros
 
 
-def _events(store: Path) -> list[dict[str, Any]]:
-    path = store / 'events.jsonl'
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def _wait_for(predicate: Any, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f'timed out waiting for {what}')
-        time.sleep(0.02)
 
 
 def _alive(pid: int) -> bool:
@@ -76,15 +65,15 @@ def test_signal_stops_supervisor_and_its_node(
     store = tmp_path / 'store-rory'
     sup = _supervise(config, scenario_env(ros_domain))
     reap.append(sup)
-    _wait_for(
-        lambda: any(e.get('new') == 'RUNNING' for e in _events(store)), 30, 'node RUNNING'
+    wait_for(
+        lambda: any(e.get('new') == 'RUNNING' for e in read_events(store)), 30, 'node RUNNING'
     )
-    node_pid = next(e['pid'] for e in _events(store) if e['kind'] == 'spawn')
-    _wait_for(
-        lambda: any(e['kind'] == 'checkpoint' for e in _events(store)), 10, 'a checkpoint'
+    node_pid = next(e['pid'] for e in read_events(store) if e['kind'] == 'spawn')
+    wait_for(
+        lambda: any(e['kind'] == 'checkpoint' for e in read_events(store)), 10, 'a checkpoint'
     )
-    _wait_for(lambda: any(e['kind'] == 'standby' for e in _events(store)), 10, 'a standby')
-    standby_pid = next(e['pid'] for e in _events(store) if e['kind'] == 'standby')
+    wait_for(lambda: any(e['kind'] == 'standby' for e in read_events(store)), 10, 'a standby')
+    standby_pid = next(e['pid'] for e in read_events(store) if e['kind'] == 'standby')
     sup.send_signal(sig)
     out, _ = sup.communicate(timeout=20)
     assert sup.returncode == 0, out.decode()
@@ -99,7 +88,7 @@ def test_signal_stops_supervisor_and_its_node(
 def test_a_crash_is_recovered_by_the_warm_standby(tmp_path: Path, ros_domain: int) -> None:
     result = run('rory', (Kill(after=4.0),), tmp_path, domain_id=ros_domain, pace='fast')
     assert result.correct, result
-    events = _events(tmp_path / 'store-rory')
+    events = read_events(tmp_path / 'store-rory')
     standby = next(e for e in events if e['kind'] == 'standby')
     spawns = [e for e in events if e['kind'] == 'spawn']
     assert [s['warm'] for s in spawns[:2]] == [False, True]
@@ -141,7 +130,7 @@ def test_crash_loop_backs_off_then_gives_up(
     out, _ = sup.communicate(timeout=60)
     text = out.decode()
     assert sup.returncode == 1, text
-    events = _events(tmp_path / '.rory')
+    events = read_events(tmp_path / '.rory')
     assert [e['code'] for e in events if e['kind'] == 'exit'] == [3, 3, 3]
     states = [e['new'] for e in events if e['kind'] == 'state']
     assert 'BACKOFF' in states and states[-3:] == ['FATAL', 'STOPPING', 'STOPPED']
@@ -159,7 +148,7 @@ def test_clean_exit_is_not_a_crash(tmp_path: Path, ros_domain: int, reap: list[A
     reap.append(sup)
     out, _ = sup.communicate(timeout=30)
     assert sup.returncode == 0, out.decode()
-    events = _events(tmp_path / '.rory')
+    events = read_events(tmp_path / '.rory')
     assert [e['kind'] for e in events].count('spawn') == 1
     assert 'EXITED' in [e['new'] for e in events if e['kind'] == 'state']
 

@@ -18,7 +18,8 @@ from rory_runtime.bundle import bundle_main, reproduce_main
 
 pytestmark = pytest.mark.ros
 
-HERE = Path(__file__).parent / 'bundle_node'
+# The fault tests' node with a bug: the number 77 makes it raise.
+FAULTS = Path(__file__).parent / 'faults'
 
 
 
@@ -28,12 +29,12 @@ HERE = Path(__file__).parent / 'bundle_node'
 def test_a_bundle_reproduces_the_crash_on_the_message_that_caused_it(
     tmp_path: Path, ros_domain: int, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    subprocess.run([sys.executable, '-m', 'rory_instrument', str(HERE), '--vars',
-                    str(HERE / 'keyvars.yaml'), '-o', str(tmp_path / 'out')], check=True,
+    subprocess.run([sys.executable, '-m', 'rory_instrument', str(FAULTS), '--vars',
+                    str(FAULTS / 'keyvars.yaml'), '-o', str(tmp_path / 'out')], check=True,
                    capture_output=True)
     config = tmp_path / 'supervise.yaml'
     config.write_text(yaml.safe_dump({
-        'nodes': [{'name': 'fragile', 'command': ['python', 'out/fragile.py'], 'method': 'rory',
+        'nodes': [{'name': 'fragile', 'command': ['python', 'out/poison.py'], 'method': 'rory',
                    'checkpoint_interval': 0.5, 'backoff': {'max_restarts': 1}}],
         'store': 'store',
     }))
@@ -46,9 +47,9 @@ def test_a_bundle_reproduces_the_crash_on_the_message_that_caused_it(
         wait_for(lambda: any(e.get('new') == 'RUNNING' for e in events(store)), 30, 'RUNNING')
         wait_for(lambda: any(e['kind'] == 'checkpoint' for e in events(store)), 10,
                   'a checkpoint')
-        subprocess.run([sys.executable, str(EXAMPLE / 'count_publisher.py'), '20', '20', '2'],
+        subprocess.run([sys.executable, str(EXAMPLE / 'count_publisher.py'), '80', '40', '2'],
                        env=env, cwd=tmp_path, check=True, timeout=60)
-        # It dies on 13, is recovered, dies on 13 again: 13 is quarantined and, with
+        # It dies on 77, is recovered, dies on 77 again: 77 is quarantined and, with
         # max_restarts 1, the supervisor gives up, leaving the store as the robot would.
         wait_for(lambda: any(e['kind'] == 'fatal' for e in events(store)), 60, 'FATAL')
     finally:
@@ -61,18 +62,18 @@ def test_a_bundle_reproduces_the_crash_on_the_message_that_caused_it(
                         '--config', str(config)]) == 0
     with tarfile.open(crash) as tar:
         names = tar.getnames()
-    assert 'report.txt' in names and 'bundle.json' in names and 'code/fragile.py' in names
+    assert 'report.txt' in names and 'bundle.json' in names and 'code/poison.py' in names
     assert any(n.startswith('store/fragile/checkpoints/') for n in names)
     assert any(n.startswith('quarantine/') for n in names)
 
-    # Elsewhere (another folder, another domain): it dies on 13 again.
+    # Elsewhere (another folder, another domain): it dies on 77 again.
     capsys.readouterr()
     code = reproduce_main([str(crash), '-C', str(tmp_path / 'desk'), '--timeout', '60',
                            '--domain', str(ros_domain)])
     out = capsys.readouterr().out
     assert code == 0, out + (tmp_path / 'desk' / 'supervisor.log').read_text()[-3000:]
-    assert 'REPRODUCED: fragile died (killed by signal 6)' in out
-    assert 'while applying /numbers' in out and 'seq 13)' in out  # the 13th message: 13
+    assert 'REPRODUCED: fragile died (exit status 1)' in out
+    assert 'while applying /numbers' in out and 'seq 77)' in out  # the 77th message: 77
 
 
 def test_bad_input_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

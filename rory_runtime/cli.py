@@ -8,7 +8,7 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from .errors import ConfigError, RoryError
+from .errors import ConfigError, ParameterError, RoryError
 
 
 def _supervise(args: argparse.Namespace) -> int:
@@ -99,7 +99,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         code: int = args.run(args)
-    except ConfigError as err:
+    except (ConfigError, ParameterError) as err:
         print(f'rory: error: {err}', file=sys.stderr)
         return 2
     except RoryError as err:

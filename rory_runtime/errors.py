@@ -57,5 +57,21 @@ class ConfigError(RoryError):
         super().__init__(f'{self.path}: {field}: {reason}')
 
 
+class ParameterError(RoryError):
+    """A ROS parameter of the supervisor has a value its setting does not take.
+
+    Args:
+        node: The supervisor's node, fully qualified (``/robot1/rory_supervisor``).
+        name: The parameter, e.g. ``amcl.method``.
+        reason: What is wrong with it.
+    """
+
+    def __init__(self, node: str, name: str, reason: str) -> None:
+        self.node = node
+        self.name = name
+        self.reason = reason
+        super().__init__(f'parameter {name} of {node}: {reason}')
+
+
 class ProtocolError(RoryError):
     """A control or replay message between runtime and supervisor is malformed."""

@@ -43,6 +43,8 @@ from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
 from .config import NodeConfig, SupervisorConfig
 from .diagnostics import NodeHealth, Reporter, age
+from .parameters import NODE_NAME as SUPERVISOR_NODE
+from .parameters import apply_parameters, own_ros_args
 from .poison import PoisonGuard
 from .process import Child, Launcher, RestartPolicy, describe_exit
 from .recovery import Recovery
@@ -790,15 +792,23 @@ class Supervisor:
     def run(self) -> int:
         """Supervise until stopped. Returns the process exit code."""
         self._apply_dds_settings()
+        # Its log goes to /rosout through rclpy (RosoutHandler); the console already has it.
+        rclpy.init(args=['rory', '--ros-args', '--disable-stdout-logs',
+                         *own_ros_args(self.ros_args)],
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.ros_node = Node(SUPERVISOR_NODE)
+        try:
+            # Before the store is claimed: a parameter may name another store.
+            self.config = apply_parameters(self.ros_node, self.config)
+            marker, resume, down_since = self._claim_store()
+        except BaseException:
+            self.ros_node.destroy_node()
+            rclpy.utilities.try_shutdown()
+            raise
         restore_signals = self._install_signals()
-        marker, resume, down_since = self._claim_store()
         if not resume:
             self._prepare_store()
         self.events_log = EventLog(self.config.store / 'events.jsonl')
-        # Its log goes to /rosout through rclpy (RosoutHandler); the console already has it.
-        rclpy.init(args=['rory', '--ros-args', '--disable-stdout-logs', *self.ros_args],
-                   signal_handler_options=SignalHandlerOptions.NO)
-        self.ros_node = Node('rory_supervisor')
         rosout = RosoutHandler(self.ros_node.get_logger())
         logging.getLogger('rory').addHandler(rosout)
         self.reporter = Reporter(self.ros_node)

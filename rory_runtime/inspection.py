@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -342,4 +343,8 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
     except InspectError as err:
         print(f'rory inspect: {err}', file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # `rory inspect ... | head`: the reader has all it wanted. Point stdout at /dev/null so
+        # the interpreter's final flush does not raise again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import subprocess
 import sys
 import types
 from pathlib import Path
@@ -110,3 +111,14 @@ def test_what_is_not_there_is_named(store: Path, argv: list[str], message: str,
     code, _ = _run(*(a.format(store=store) for a in argv))
     assert code == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_reader_that_stops_early_gets_no_traceback(store: Path) -> None:
+    # `rory inspect STORE | head -1`: the pipe closes while the listing is still being written.
+    proc = subprocess.Popen([sys.executable, '-m', 'rory_runtime.cli', 'inspect', str(store)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.readline()
+    proc.stdout.close()
+    assert proc.wait(timeout=30) == 0
+    assert proc.stderr.read() == b''

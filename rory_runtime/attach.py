@@ -65,6 +65,8 @@ from .inflight import InFlightSlot, slot_path
 from .log import SegmentStore, SegmentWriter, default_typestore
 from .msgtypes import type_name_of
 from .protocol import (
+    DEFAULT_CHANNEL,
+    ENV_CHANNEL,
     ENV_INCARNATION,
     ENV_INTERVAL,
     ENV_METHOD,
@@ -112,6 +114,7 @@ class RuntimeEnv:
     interval: float | None  # None: the supervisor config left it to the node's keyvars
     quarantined: frozenset[tuple[str, MessageId]] = frozenset()
     secret: bytes | None = None  # the run's key: envelopes and statuses are signed with it
+    channel: str = DEFAULT_CHANNEL  # the namespace of its two topics with the supervisor
 
     @classmethod
     def from_environ(cls, environ: dict[str, str] | None = None) -> RuntimeEnv | None:
@@ -137,6 +140,7 @@ class RuntimeEnv:
                     for topic, source_ns, seq in json.loads(env.get(ENV_QUARANTINE) or '[]')
                 ),
                 secret=bytes.fromhex(env[ENV_SECRET]) if env.get(ENV_SECRET) else None,
+                channel=env.get(ENV_CHANNEL) or DEFAULT_CHANNEL,
             )
         except (KeyError, ValueError, TypeError) as err:
             raise RoryError(f'{ENV_NODE} is set but the environment is bad: {err}') from None
@@ -536,7 +540,8 @@ class NodeRuntime:
         self.node = node
         self._group = MutuallyExclusiveCallbackGroup()
         self._status_pub = Node.create_publisher(
-            node, String, protocol.status_topic(self.env.node_id), protocol.STATUS_QOS
+            node, String, protocol.status_topic(self.env.node_id, self.env.channel),
+            protocol.STATUS_QOS,
         )
         if self.method.logs:
             # Loading the typestore costs ~0.1 s; do it before the first message needs it.
@@ -574,7 +579,7 @@ class NodeRuntime:
             Node.create_subscription(
                 self.node,
                 UInt8MultiArray,
-                protocol.replay_topic(self.env.node_id),
+                protocol.replay_topic(self.env.node_id, self.env.channel),
                 on_envelope,
                 protocol.REPLAY_QOS,
                 raw=True,
@@ -634,7 +639,8 @@ class NodeRuntime:
         try:
             envelope = protocol.unpack(raw, self.env.secret)
         except ProtocolError as err:
-            self._error(f'malformed envelope on {protocol.replay_topic(self.env.node_id)}: {err}')
+            shadow = protocol.replay_topic(self.env.node_id, self.env.channel)
+            self._error(f'malformed envelope on {shadow}: {err}')
             return
         if envelope.incarnation != self.env.incarnation:
             return  # meant for an earlier process of this node

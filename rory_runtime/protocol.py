@@ -4,7 +4,9 @@ The two halves of RORY meet only here: environment variables the supervisor sets
 spawns, the names and QoS of the two topics between them, the status messages a node sends, and
 the binary envelopes the supervisor sends back.
 
-Topics (``<node>`` is the node's id from the supervisor configuration):
+Topics (``<node>`` is the node's id from the supervisor configuration; ``/rory`` is the
+*channel*, the supervisor's namespace followed by ``rory``, so that two supervisors on one DDS
+network, e.g. one per robot under ``-r __ns:=/robot1``, never share a topic):
 
 ``/rory/<node>/status``  node -> supervisor, ``std_msgs/msg/String`` holding one JSON object.
     Reliable and transient-local, so a status published before the supervisor's reader matched
@@ -60,6 +62,9 @@ ENV_QUARANTINE: Final = 'RORY_QUARANTINE'  # JSON [[topic, source_ns, seq], ...]
 # over DDS: envelopes and status messages carry an HMAC of it, so another participant on the
 # domain cannot feed a recovering node forged messages or steer its recovery.
 ENV_SECRET: Final = 'RORY_SECRET'  # hex
+# Where the node's two topics live: ``<supervisor namespace>/rory`` (see channel()).
+ENV_CHANNEL: Final = 'RORY_CHANNEL'
+DEFAULT_CHANNEL: Final = '/rory'
 
 NODE_ID_RE: Final = re.compile(r'[A-Za-z][A-Za-z0-9_]*')  # use fullmatch
 
@@ -109,14 +114,19 @@ class ReplayPace(enum.StrEnum):
     FAST = 'fast'  # as fast as the node takes them
 
 
-def status_topic(node_id: str) -> str:
+def channel(namespace: str) -> str:
+    """The channel of a supervisor whose node is in ``namespace`` (``/robot1/rory``)."""
+    return f'{namespace.rstrip("/")}{DEFAULT_CHANNEL}'
+
+
+def status_topic(node_id: str, channel: str = DEFAULT_CHANNEL) -> str:
     """Topic a node's runtime reports on."""
-    return f'/rory/{node_id}/status'
+    return f'{channel}/{node_id}/status'
 
 
-def replay_topic(node_id: str) -> str:
+def replay_topic(node_id: str, channel: str = DEFAULT_CHANNEL) -> str:
     """The node's shadow topic."""
-    return f'/rory/{node_id}/replay'
+    return f'{channel}/{node_id}/replay'
 
 
 STATUS_QOS: Final = QoSProfile(

@@ -11,11 +11,12 @@ Example::
         hang_timeout: 10.0        # s without a heartbeat: hung, killed, recovered (null: off)
         start_timeout: 60.0       # s from spawn to the first heartbeat (null: off)
         warm_standby: true        # a started process waits to replace it (default: rory only)
-    safe_state:                   # held from S1 until S4
-      - topic: /e_stop
+    safe_state:                   # held from S1 until S4, while any node recovers
+      - topic: /e_stop            # relative (e_stop): in the supervisor's namespace
         type: std_msgs/msg/Bool
         hold: {data: true}
         release: {data: false}
+        nodes: [integrator]       # only while one of these recovers (default: every node)
     store: .rory
     dds: fast_rediscovery         # fast_rediscovery (default) | inherit
 
@@ -38,6 +39,8 @@ from ..errors import ConfigError
 from ..protocol import NODE_ID_RE, Method, ReplayPace
 
 _TYPE_RE = re.compile(r'[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*')
+# A ROS topic name, absolute or relative (no ~ or substitutions: the supervisor publishes it).
+_TOPIC_RE = re.compile(r'/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*')
 _PYTHON_NAMES = frozenset({'python', 'python3', 'python3.11'})
 
 
@@ -83,6 +86,7 @@ class SafeAction:
     hold: Mapping[str, Any]
     release: Mapping[str, Any] | None
     rate: float | None  # republish the hold message at this rate (Hz); None: once, latched
+    nodes: tuple[str, ...] | None = None  # held while one of these recovers; None: any node
 
 
 @dataclass(frozen=True)
@@ -184,6 +188,11 @@ def load_config(path: Path | str) -> SupervisorConfig:
     if not isinstance(safe_raw, list):
         raise top.error('safe_state', 'must be a list')
     safe = tuple(_safe_action(path, f'safe_state[{i}]', item) for i, item in enumerate(safe_raw))
+    for i, action in enumerate(safe):
+        for k, name in enumerate(action.nodes or ()):
+            if name not in seen:
+                raise ConfigError(path, f'safe_state[{i}].nodes[{k}]',
+                                  f'no node is named {name!r}')
 
     store_raw = top.obj.get('store', '.rory')
     if not isinstance(store_raw, str) or not store_raw:
@@ -273,10 +282,11 @@ def _backoff(path: Path, where: str, obj: Any) -> Backoff:
 
 
 def _safe_action(path: Path, where: str, obj: Any) -> SafeAction:
-    f = _Fields(path, where, obj, {'topic', 'type', 'hold', 'release', 'rate'})
+    f = _Fields(path, where, obj, {'topic', 'type', 'hold', 'release', 'rate', 'nodes'})
     topic = f.required('topic')
-    if not isinstance(topic, str) or not topic.startswith('/'):
-        raise f.error('topic', f'must be an absolute topic name, got {topic!r}')
+    if not isinstance(topic, str) or not _TOPIC_RE.fullmatch(topic):
+        raise f.error('topic', f'must be a topic name (/e_stop, or e_stop in the supervisor\'s '
+                               f'namespace), got {topic!r}')
     msgtype = f.required('type')
     if not isinstance(msgtype, str) or not _TYPE_RE.fullmatch(msgtype):
         raise f.error('type', f'must look like pkg/msg/Name, got {msgtype!r}')
@@ -287,4 +297,9 @@ def _safe_action(path: Path, where: str, obj: Any) -> SafeAction:
     if release is not None and not isinstance(release, dict):
         raise f.error('release', 'must be a mapping of message fields')
     rate = None if f.obj.get('rate') is None else f.number('rate', 0.0)
-    return SafeAction(topic=topic, msgtype=msgtype, hold=hold, release=release, rate=rate)
+    nodes = f.obj.get('nodes')
+    if nodes is not None and (not isinstance(nodes, list) or not nodes
+                              or not all(isinstance(n, str) for n in nodes)):
+        raise f.error('nodes', f'must be a non-empty list of node names, got {nodes!r}')
+    return SafeAction(topic=topic, msgtype=msgtype, hold=hold, release=release, rate=rate,
+                      nodes=None if nodes is None else tuple(nodes))

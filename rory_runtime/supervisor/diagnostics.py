@@ -27,8 +27,10 @@ from std_msgs.msg import String
 
 from .states import NodeState
 
+# /diagnostics is one topic for the whole robot (aggregators listen there); the events are the
+# supervisor's own, relative to its namespace: /rory/events, or /robot1/rory/events.
 DIAGNOSTICS_TOPIC: Final = '/diagnostics'
-EVENTS_TOPIC: Final = '/rory/events'
+EVENTS_TOPIC: Final = 'rory/events'
 DIAGNOSTICS_PERIOD: Final = 1.0
 """Seconds between /diagnostics messages (diagnostic_updater's default rate)."""
 
@@ -89,8 +91,13 @@ def _number(value: float | None, digits: int = 1) -> str:
     return '' if value is None else f'{value:.{digits}f}'
 
 
-def node_status(health: NodeHealth) -> DiagnosticStatus:
-    """The DiagnosticStatus of one node."""
+def node_status(health: NodeHealth, namespace: str = '/') -> DiagnosticStatus:
+    """The DiagnosticStatus of one node of a supervisor in ``namespace``.
+
+    Named ``rory: <node>``, or ``rory: robot1/<node>`` under ``/robot1``: robots that share a
+    DDS network share /diagnostics, and the same config gives each robot the same node ids.
+    """
+    qualified = f'{namespace.strip("/")}/{health.node}'.lstrip('/')
     values = {
         'state': health.state.value,
         'method': health.method,
@@ -104,9 +111,9 @@ def node_status(health: NodeHealth) -> DiagnosticStatus:
     }
     return DiagnosticStatus(
         level=level_of(health.state),
-        name=f'rory: {health.node}',
+        name=f'rory: {qualified}',
         message=_message(health),
-        hardware_id=health.node,
+        hardware_id=qualified,
         values=[KeyValue(key=k, value=v) for k, v in values.items()],
     )
 
@@ -133,7 +140,8 @@ class Reporter:
 
     def diagnostics(self, nodes: Iterable[NodeHealth]) -> None:
         """Publish one DiagnosticArray with a status per node."""
-        array = DiagnosticArray(status=[node_status(h) for h in nodes])
+        namespace = self._node.get_namespace()
+        array = DiagnosticArray(status=[node_status(h, namespace) for h in nodes])
         array.header.stamp = self._node.get_clock().now().to_msg()
         self._diagnostics.publish(array)
 

@@ -1,9 +1,11 @@
 """Safe-state actions: put the robot in a safe state at S1 and keep it there until S4.
 
 The actions are shared by every supervised node: held while any node recovers, released when
-the last one is back. Each action publishes its ``hold`` message once on a reliable,
-transient-local topic (a latch, so a late subscriber still sees it) and, if it has a ``rate``,
-again at that rate until release, for inputs that time out (a zero Twist on a velocity mux).
+the last one is back; an action may be scoped to some nodes (``nodes: [...]``), e.g. one robot's
+stop when one supervisor runs two robots. Each action publishes its ``hold`` message once on a
+reliable, transient-local topic (a latch, so a late subscriber still sees it) and, if it has a
+``rate``, again at that rate until release, for inputs that time out (a zero Twist on a velocity
+mux).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from rclpy.node import Node
@@ -39,10 +41,18 @@ class _Prepared:
     publisher: Publisher
     hold: Any
     release: Any | None
+    holders: set[str] = field(default_factory=set)  # recovering nodes in its scope
+
+    def covers(self, node_id: str) -> bool:
+        return self.action.nodes is None or node_id in self.action.nodes
 
 
 class SafeState:
-    """The configured safe actions and who is holding them."""
+    """The configured safe actions and who is holding each.
+
+    An action without ``nodes`` is held while any node recovers; one with ``nodes`` only while
+    one of those does (a supervisor that runs two robots stops only the robot that crashed).
+    """
 
     def __init__(self, node: Node, config: SupervisorConfig) -> None:
         self._prepared: list[_Prepared] = []
@@ -59,64 +69,82 @@ class SafeState:
             except MessageTypeError as err:
                 raise ConfigError(config.path, where, str(err)) from None
             # Created at start-up so subscribers have long discovered them when a crash comes.
+            # A relative topic resolves in the supervisor's namespace (one robot's e-stop).
             publisher = node.create_publisher(msg_class, action.topic, LATCHED_QOS)
             self._prepared.append(_Prepared(action, publisher, hold, release))
-        self.holders: set[str] = set()
         self._lock = threading.Lock()
-        self._wake = threading.Event()
-        self._rate_thread: threading.Thread | None = None
+        # The thread that republishes rated holds, and the event that ends it (one per thread,
+        # so a hold right after a release never revives the thread being stopped).
+        self._rate_thread: tuple[threading.Thread, threading.Event] | None = None
+
+    @property
+    def holders(self) -> set[str]:
+        """The recovering nodes that hold some action."""
+        with self._lock:
+            return set().union(*(p.holders for p in self._prepared))
 
     @property
     def held(self) -> bool:
-        """Whether the safe state is in force."""
+        """Whether any safe action is in force."""
         return bool(self.holders)
+
+    def held_topics(self) -> list[str]:
+        """The resolved topics of the actions in force."""
+        with self._lock:
+            return [p.publisher.topic_name for p in self._prepared if p.holders]
 
     def hold(self, node_id: str) -> None:
         """S1: enter the safe state on behalf of a recovering node (idempotent)."""
         with self._lock:
-            first = not self.holders
-            self.holders.add(node_id)
-            if not first:
-                return
             for p in self._prepared:
-                p.publisher.publish(p.hold)
-                _logger.info('%s safe state: %s held (%s)', LOG_PREFIX, p.action.topic, node_id)
-            if any(p.action.rate for p in self._prepared):
-                self._wake.clear()
-                self._rate_thread = threading.Thread(
-                    target=self._repeat, name='rory-safe-state', daemon=True
+                if not p.covers(node_id) or node_id in p.holders:
+                    continue
+                p.holders.add(node_id)
+                if len(p.holders) == 1:
+                    p.publisher.publish(p.hold)
+                    _logger.info('%s safe state: %s held (%s)', LOG_PREFIX,
+                                 p.publisher.topic_name, node_id)
+            rated = any(p.action.rate and p.holders for p in self._prepared)
+            if rated and self._rate_thread is None:
+                done = threading.Event()
+                thread = threading.Thread(
+                    target=self._repeat, args=(done,), name='rory-safe-state', daemon=True
                 )
-                self._rate_thread.start()
+                self._rate_thread = (thread, done)
+                thread.start()
 
     def release(self, node_id: str) -> None:
-        """S4: leave the safe state once no recovering node holds it."""
+        """S4: leave each action once no recovering node in its scope holds it."""
         with self._lock:
-            if node_id not in self.holders:
-                return
-            self.holders.discard(node_id)
-            if self.holders:
-                return
-            self._wake.set()
             for p in self._prepared:
+                if node_id not in p.holders:
+                    continue
+                p.holders.discard(node_id)
+                if p.holders:
+                    continue
                 if p.release is not None:
                     p.publisher.publish(p.release)
-                _logger.info('%s safe state: %s released', LOG_PREFIX, p.action.topic)
-        if self._rate_thread is not None:
-            self._rate_thread.join(timeout=1.0)
-            self._rate_thread = None
+                _logger.info('%s safe state: %s released', LOG_PREFIX, p.publisher.topic_name)
+            stopping = None
+            if self._rate_thread is not None and not any(
+                p.action.rate and p.holders for p in self._prepared
+            ):
+                stopping, self._rate_thread = self._rate_thread, None
+                stopping[1].set()
+        if stopping is not None:
+            stopping[0].join(timeout=1.0)
 
-    def _repeat(self) -> None:
+    def _repeat(self, done: threading.Event) -> None:
         rated = [p for p in self._prepared if p.action.rate]
         next_at = {id(p): time.monotonic() + 1.0 / float(p.action.rate or 1) for p in rated}
         while True:
             wait = max(0.0, min(next_at.values()) - time.monotonic())
-            if self._wake.wait(wait):
+            if done.wait(wait):
                 return
             now = time.monotonic()
             for p in rated:
                 if now >= next_at[id(p)]:
                     with self._lock:
-                        if not self.holders:
-                            return
-                        p.publisher.publish(p.hold)
+                        if p.holders:
+                            p.publisher.publish(p.hold)
                     next_at[id(p)] = now + 1.0 / float(p.action.rate or 1)

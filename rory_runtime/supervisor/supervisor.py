@@ -214,13 +214,13 @@ class ManagedNode:
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
         self.last_checkpoint_at: float | None = None  # monotonic
         self.replay_pub = protocol.SignedPublisher(sup.ros_node.create_publisher(
-            UInt8MultiArray, protocol.replay_topic(cfg.name), protocol.REPLAY_QOS
+            UInt8MultiArray, protocol.replay_topic(cfg.name, sup.channel), protocol.REPLAY_QOS
         ), sup.secret)
         def on_status(msg: Any) -> None:
             sup.post_status(cfg.name, str(msg.data))
 
         sup.ros_node.create_subscription(
-            String, protocol.status_topic(cfg.name), on_status, protocol.STATUS_QOS
+            String, protocol.status_topic(cfg.name, sup.channel), on_status, protocol.STATUS_QOS
         )
 
     # -- process life -------------------------------------------------------------------------
@@ -243,6 +243,7 @@ class ManagedNode:
                 protocol.ENV_MODE: mode.value,
                 protocol.ENV_QUARANTINE: self.poison.env_value(),
                 protocol.ENV_SECRET: self.sup.secret.hex(),
+                protocol.ENV_CHANNEL: self.sup.channel,
                 'PYTHONUNBUFFERED': '1',
             }
         )
@@ -703,6 +704,7 @@ class Supervisor:
         self.nodes: dict[str, ManagedNode] = {}
         self._ring_ctx: RingContext | None = None
         self._stopping = False
+        self.channel = protocol.DEFAULT_CHANNEL  # set from its node's namespace in run()
 
     # called from other threads
     def post_status(self, node_id: str, text: str) -> None:
@@ -797,6 +799,8 @@ class Supervisor:
                          *own_ros_args(self.ros_args)],
                    signal_handler_options=SignalHandlerOptions.NO)
         self.ros_node = Node(SUPERVISOR_NODE)
+        # Its nodes' topics live under its own namespace: a supervisor per robot, same config.
+        self.channel = protocol.channel(self.ros_node.get_namespace())
         try:
             # Before the store is claimed: a parameter may name another store.
             self.config = apply_parameters(self.ros_node, self.config)

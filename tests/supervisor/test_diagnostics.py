@@ -64,3 +64,10 @@ def test_unknowns_are_empty_not_zero() -> None:
     values = {kv.key: kv.value for kv in status.values}
     assert values['last recovery (ms)'] == '' and values['last checkpoint age (s)'] == ''
     assert status.message == 'starting'
+
+
+def test_a_supervisor_in_a_namespace_names_its_nodes_with_it() -> None:
+    # Robots on one DDS network share /diagnostics, and one config gives each the same ids.
+    assert node_status(_health(NodeState.RUNNING)).name == 'rory: mapper'
+    status = node_status(_health(NodeState.RUNNING), '/robot1')
+    assert status.name == 'rory: robot1/mapper' and status.hardware_id == 'robot1/mapper'

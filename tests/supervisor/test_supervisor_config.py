@@ -266,8 +266,25 @@ ERRORS = [
     (MINIMAL + 'safe_state: [5]\n', 'safe_state[0]'),
     (MINIMAL + 'safe_state:\n  - {type: std_msgs/msg/Bool, hold: {}}\n', 'safe_state[0].topic'),
     (
-        MINIMAL + 'safe_state:\n  - {topic: e_stop, type: std_msgs/msg/Bool, hold: {}}\n',
+        MINIMAL + 'safe_state:\n  - {topic: e_stop/, type: std_msgs/msg/Bool, hold: {}}\n',
         'safe_state[0].topic',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: ~/e_stop, type: std_msgs/msg/Bool, hold: {}}\n',
+        'safe_state[0].topic',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool, hold: {}, nodes: b}\n',
+        'safe_state[0].nodes',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool, hold: {}, nodes: []}\n',
+        'safe_state[0].nodes',
+    ),
+    (
+        MINIMAL + 'safe_state:\n  - {topic: /e, type: std_msgs/msg/Bool, hold: {},'
+        ' nodes: [a, b]}\n',
+        'safe_state[0].nodes[1]',
     ),
     (
         MINIMAL + 'safe_state:\n  - {topic: 5, type: std_msgs/msg/Bool, hold: {}}\n',
@@ -412,3 +429,14 @@ def test_only_rory_has_a_warm_standby_by_default(tmp_path: Path, method: str) ->
     text = f'nodes:\n  - name: a\n    command: [python, a.py]\n    method: {method}\n'
     path = write(tmp_path, text)
     assert load_config(path).nodes[0].warm_standby is False
+
+
+def test_a_safe_action_may_be_relative_and_scoped_to_some_nodes(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, MINIMAL + textwrap.dedent("""\
+        safe_state:
+          - {topic: e_stop, type: std_msgs/msg/Bool, hold: {data: true}, nodes: [a]}
+          - {topic: /all/stop, type: std_msgs/msg/Bool, hold: {data: true}}
+        """)))
+    scoped, everyone = config.safe_state
+    assert scoped.topic == 'e_stop' and scoped.nodes == ('a',)
+    assert everyone.topic == '/all/stop' and everyone.nodes is None

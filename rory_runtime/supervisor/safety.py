@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -54,7 +55,10 @@ class SafeState:
     one of those does (a supervisor that runs two robots stops only the robot that crashed).
     """
 
-    def __init__(self, node: Node, config: SupervisorConfig) -> None:
+    def __init__(self, node: Node, config: SupervisorConfig,
+                 notify: Callable[[str, str, str], None] | None = None) -> None:
+        # notify(node_id, 'held' | 'released', topic): e.g. a record in events.jsonl.
+        self._notify = notify or (lambda _node, _what, _topic: None)
         self._prepared: list[_Prepared] = []
         for i, action in enumerate(config.safe_state):
             where = f'safe_state[{i}]'
@@ -104,6 +108,7 @@ class SafeState:
                     p.publisher.publish(p.hold)
                     _logger.info('%s safe state: %s held (%s)', LOG_PREFIX,
                                  p.publisher.topic_name, node_id)
+                    self._notify(node_id, 'held', p.publisher.topic_name)
             rated = any(p.action.rate and p.holders for p in self._prepared)
             if rated and self._rate_thread is None:
                 done = threading.Event()
@@ -125,6 +130,7 @@ class SafeState:
                 if p.release is not None:
                     p.publisher.publish(p.release)
                 _logger.info('%s safe state: %s released', LOG_PREFIX, p.publisher.topic_name)
+                self._notify(node_id, 'released', p.publisher.topic_name)
             stopping = None
             if self._rate_thread is not None and not any(
                 p.action.rate and p.holders for p in self._prepared

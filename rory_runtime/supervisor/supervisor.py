@@ -824,7 +824,10 @@ class Supervisor:
         spinner = threading.Thread(target=self._spin, args=(executor,), name='rory-ros')
         code = 1
         try:
-            self.safety = SafeState(self.ros_node, self.config)
+            self.safety = SafeState(
+                self.ros_node, self.config,
+                lambda node, what, topic: self.events_log.write('safe_state', node, what=what,
+                                                                topic=topic))
             for cfg in self.config.nodes:
                 self.nodes[cfg.name] = ManagedNode(self, cfg)
             executor.add_node(self.ros_node)

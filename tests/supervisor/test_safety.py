@@ -64,7 +64,8 @@ def test_each_action_is_held_while_a_node_in_its_scope_recovers(
 ) -> None:
     path = tmp_path / 'fleet.yaml'
     path.write_text(textwrap.dedent(CONFIG))
-    safety = SafeState(node, load_config(path))
+    notes: list[tuple[str, str, str]] = []
+    safety = SafeState(node, load_config(path), lambda *note: notes.append(note))
     robot1 = _Heard(node, '/site/robot1/e_stop')
     robot2 = _Heard(node, '/site/robot2/e_stop')
     fleet = _Heard(node, '/fleet/any_recovering')
@@ -90,6 +91,10 @@ def test_each_action_is_held_while_a_node_in_its_scope_recovers(
     _spin(node, 0.2)
     assert len(fleet.values) == repeats, 'the rated hold stopped with the release'
 
+    assert notes == [('amcl1', 'held', '/site/robot1/e_stop'),
+                     ('amcl1', 'held', '/fleet/any_recovering'),
+                     ('navigator1', 'released', '/site/robot1/e_stop'),
+                     ('navigator1', 'released', '/fleet/any_recovering')]
     safety.hold('amcl2')
     _spin(node, 0.3)  # (depth 1: a release right behind the hold would replace it unread)
     safety.release('amcl2')

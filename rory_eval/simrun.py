@@ -22,6 +22,7 @@ whole process tree (a supervisor and the node it runs count together).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import signal
@@ -45,6 +46,7 @@ from rory_eval.scenario import scenario_env
 
 REPO = Path(__file__).resolve().parent.parent
 _CLK_TCK = os.sysconf('SC_CLK_TCK')
+_RECORDERS = itertools.count(1)
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                      reliability=ReliabilityPolicy.RELIABLE)
@@ -288,7 +290,8 @@ class _Recorder:
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id,
                    signal_handler_options=SignalHandlerOptions.NO)
-        self.node = Node('simrun_recorder', context=self.context)
+        # Unique: runs side by side in one process (rory_eval.fleet) each have a recorder.
+        self.node = Node(f'simrun_recorder_{next(_RECORDERS)}', context=self.context)
         self._lock = threading.Lock()
         for rec in recordings:
             self.node.create_subscription(rec.msg_type, rec.topic, self._callback(rec), rec.qos)

@@ -6,7 +6,9 @@ under a lock. Nothing spins on a timer, so an idle executor costs nothing, and t
 is one ``mj_step`` call (five physics steps); ``/clock`` goes out every other tick (50 Hz).
 
 Topics, rates, QoS and frames are listed in ``sim/README.md``; the QoS profiles are defined
-here, once, for the driver and the tests to share.
+here, once, for the driver and the tests to share. Topic names are relative, as a ROS driver's
+are: ``/scan`` by default, ``/robot1/scan`` under ``rory sim ... --ros-args -r __ns:=/robot1``
+(``/clock`` too, so each robot's nodes remap ``/clock`` to their own simulator's).
 """
 
 from __future__ import annotations
@@ -116,20 +118,20 @@ class SimBridge:
         self._estop_events: list[bool] = []
         self._stop = False
         n = self.node
-        self.pub_clock = n.create_publisher(Clock, '/clock', CLOCK_QOS)
-        self.pub_scan = n.create_publisher(LaserScan, '/scan', SENSOR_QOS)
-        self.pub_cloud = n.create_publisher(PointCloud2, '/camera/depth/points', CLOUD_QOS)
-        self.pub_info = n.create_publisher(CameraInfo, '/camera/depth/camera_info', SENSOR_QOS)
-        self.pub_odom = n.create_publisher(Odometry, '/odom', SENSOR_QOS)
-        self.pub_truth = n.create_publisher(PoseStamped, '/ground_truth/pose', SENSOR_QOS)
-        self.pub_collisions = n.create_publisher(DiagnosticArray, '/collisions', EVENT_QOS)
-        n.create_subscription(Twist, '/cmd_vel', self._on_cmd_vel, CMD_VEL_QOS)
-        n.create_subscription(Bool, '/e_stop', self._on_e_stop, LATCHED_QOS)
+        self.pub_clock = n.create_publisher(Clock, 'clock', CLOCK_QOS)
+        self.pub_scan = n.create_publisher(LaserScan, 'scan', SENSOR_QOS)
+        self.pub_cloud = n.create_publisher(PointCloud2, 'camera/depth/points', CLOUD_QOS)
+        self.pub_info = n.create_publisher(CameraInfo, 'camera/depth/camera_info', SENSOR_QOS)
+        self.pub_odom = n.create_publisher(Odometry, 'odom', SENSOR_QOS)
+        self.pub_truth = n.create_publisher(PoseStamped, 'ground_truth/pose', SENSOR_QOS)
+        self.pub_collisions = n.create_publisher(DiagnosticArray, 'collisions', EVENT_QOS)
+        n.create_subscription(Twist, 'cmd_vel', self._on_cmd_vel, CMD_VEL_QOS)
+        n.create_subscription(Bool, 'e_stop', self._on_e_stop, LATCHED_QOS)
         if grid is not None:
-            self.pub_map = n.create_publisher(OccupancyGrid, '/ground_truth/map', LATCHED_QOS)
+            self.pub_map = n.create_publisher(OccupancyGrid, 'ground_truth/map', LATCHED_QOS)
             self.pub_map.publish(self._grid_msg(grid))
         if info is not None:
-            self.pub_sim_info = n.create_publisher(String, '/sim/info', LATCHED_QOS)
+            self.pub_sim_info = n.create_publisher(String, 'sim/info', LATCHED_QOS)
             self.pub_sim_info.publish(String(data=json.dumps(info, sort_keys=True)))
         self._build_messages()
         self.executor = SingleThreadedExecutor()

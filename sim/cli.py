@@ -166,7 +166,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     internal = RouteFollower(world.route, cruise=args.speed) if args.driver == 'internal' else None
     # Our own SIGINT/SIGTERM handling: finish the tick, then shut down and write the summary
     # (rclpy's handlers would invalidate the context under a publish).
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    rclpy.init(args=['rory-sim', '--ros-args', *args.ros_args],
+               signal_handler_options=SignalHandlerOptions.NO)
     bridge = SimBridge(sim, grid=grid, info=describe(world, args.seed), driver=internal)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: bridge.request_stop())
@@ -338,7 +339,13 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0].startswith('-') and argv[0] not in ('-h', '--help'):
         argv.insert(0, 'run')
+    # ROS arguments (a namespace per robot, remaps) go to the simulator's node, as for any node.
+    ros_args: list[str] = []
+    if '--ros-args' in argv:
+        at = argv.index('--ros-args')
+        argv, ros_args = argv[:at], [a for a in argv[at + 1:] if a != '--']
     args = build_parser().parse_args(argv)
+    args.ros_args = ros_args
     try:
         code: int = args.run(args)
     except (KeyError, ValueError, OSError) as err:

@@ -187,7 +187,8 @@ def robot2_timing(result: FleetResult, margin_ns: int = 1_000_000_000) -> Timing
     before, after = result.outage()
     robot2 = result.robots['robot2']
     stamps = sorted(robot2.received)
-    during, other = [], []
+    during: list[float] = []
+    other: list[float] = []
     for a, b in itertools.pairwise(stamps):
         gap = (robot2.received[b] - robot2.received[a]) * 1000
         (during if before <= b <= after + margin_ns else other).append(gap)

@@ -73,6 +73,26 @@ def absorbed_identities(
     return known
 
 
+@dataclass(frozen=True)
+class InputGap:
+    """Publication sequence numbers of an input that never reached this host."""
+
+    topic: str
+    first: int
+    last: int
+    seen_after_ns: int  # receive time of the message after the gap
+
+    @property
+    def missing(self) -> int:
+        """How many messages."""
+        return self.last - self.first + 1
+
+    def to_json(self) -> dict[str, Any]:
+        """For events.jsonl."""
+        return {'topic': self.topic, 'first': self.first, 'last': self.last,
+                'missing': self.missing}
+
+
 class RecoveryLog:
     """R: what arrived for the node since its crash (and the ring's backlog), as a segment.
 
@@ -92,12 +112,20 @@ class RecoveryLog:
         self.sealed = False
         self.cond = threading.Condition()
         self.dropped_known = 0
+        # Sequence numbers per topic, to see messages that never reached this host (a link
+        # outage longer than the DDS lease drops the readers; a re-matched volatile reader gets
+        # nothing of what was sent meanwhile). Seeded with what the node last logged.
+        self._last_seq = {topic: max(seq for _, seq in ids) for topic, ids in known.items()
+                          if ids}
+        self.gaps: list[InputGap] = []
 
     def add(self, entry: LogEntry) -> None:
         """Record one message (called from the ring's thread)."""
         with self.cond:
             seen = self._known.setdefault(entry.topic, set())
-            if entry.ident in seen:
+            known = entry.ident in seen
+            self._track(entry, known)
+            if known:
                 self.dropped_known += 1
                 return
             seen.add(entry.ident)
@@ -116,6 +144,16 @@ class RecoveryLog:
                     _logger.error('%s recovery log: %s', LOG_PREFIX, err)
                 self.entries.append(entry)
             self.cond.notify_all()
+
+    def _track(self, entry: LogEntry, known: bool) -> None:
+        last = self._last_seq.get(entry.topic)
+        if last is not None and entry.seq <= last:
+            if not known:  # a new writer (restarted publisher) or a second publisher
+                self._last_seq[entry.topic] = entry.seq
+            return
+        if last is not None and entry.seq > last + 1 and not known:
+            self.gaps.append(InputGap(entry.topic, last + 1, entry.seq - 1, entry.recv_ns))
+        self._last_seq[entry.topic] = entry.seq
 
     def add_many(self, entries: list[LogEntry]) -> None:
         """Record a backlog, already in receive order."""
@@ -361,6 +399,18 @@ class Recovery:
         self.timings.s4_done = time.monotonic()
         self.stats = dict(node_stats)
         return self.timings.breakdown()
+
+    def input_gaps(self, trustworthy: Callable[[str], bool]) -> list[InputGap]:
+        """Gaps in the inputs' sequence numbers seen by this recovery so far.
+
+        Args:
+            trustworthy: Whether a topic's sequence numbers are one publisher's, reliably sent
+                (with two publishers they interleave; best effort loses by design).
+        """
+        if self.rlog is None:
+            return []
+        with self.rlog.cond:
+            return [gap for gap in self.rlog.gaps if trustworthy(gap.topic)]
 
     def on_switched(self, topic: str) -> bool:
         """A topic is live again; stop relaying it. Returns True when every topic is."""

@@ -47,7 +47,7 @@ from .parameters import NODE_NAME as SUPERVISOR_NODE
 from .parameters import apply_parameters, own_ros_args
 from .poison import PoisonGuard
 from .process import Child, Launcher, RestartPolicy, describe_exit
-from .recovery import Recovery
+from .recovery import InputGap, Recovery
 from .ring import Ring, RingContext
 from .run_marker import PreviousRun, RunMarker
 from .safety import SafeState
@@ -211,6 +211,7 @@ class ManagedNode:
         self.resumed = False  # first started from the store of a run that did not stop
         self.standby_for: int | None = None  # the incarnation whose successor is on standby
         self.crashes_total = 0
+        self.reported_gaps: set[InputGap] = set()  # input gaps already logged (recovery.py)
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
         self.last_checkpoint_at: float | None = None  # monotonic
         self.replay_pub = protocol.SignedPublisher(sup.ros_node.create_publisher(
@@ -530,17 +531,45 @@ class ManagedNode:
                 rec.crashes, stats['replayed'], stats['duplicates'],
             )
             pace = self._replay_pace().value if self.cfg.method.logs else None
+            gaps = self._report_input_gaps(rec)
             self.sup.events_log.write(
                 'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
                 incarnation=self.incarnation, replay=pace, **timing, **stats,
+                input_gaps=[g.to_json() for g in gaps],
             )
             if rec.ring is None or not rec.ring.active_topics:
                 self._end_recovery()
         elif self.sm.state in (NodeState.STARTING, NodeState.ARMING):
             self.sm.change_state(NodeState.RUNNING, 'released')
 
+    def _report_input_gaps(self, rec: Recovery) -> list[InputGap]:
+        """Say which input messages never reached this host during the recovery (once each).
+
+        RORY cannot replay them, and a node that had not crashed would not have had them
+        either (its reader was dropped too), so the recovery still ends where that node would
+        be; but an operator must know that messages were lost, and why.
+        """
+        ring = rec.ring
+
+        def trustworthy(topic: str) -> bool:
+            reader = ring.topics.get(topic) if ring is not None else None
+            return (reader is not None and reader.spec.reliable
+                    and reader.publisher_count() == 1)
+
+        new = [g for g in rec.input_gaps(trustworthy) if g not in self.reported_gaps]
+        for gap in new:
+            self.reported_gaps.add(gap)
+            _logger.warning(
+                '%s %s: input %s: %d messages (publication seq %d-%d) never reached this host '
+                'while the node was down: DDS dropped them (a link outage longer than the '
+                'lease drops remote readers); a node that had not crashed would not have had '
+                'them either', LOG_PREFIX, self.id, gap.topic, gap.missing, gap.first, gap.last)
+            self.sup.events_log.write('input_gap', self.id, **gap.to_json())
+        return new
+
     def _end_recovery(self) -> None:
         if self.recovery is not None:
+            self._report_input_gaps(self.recovery)
             self.recovery.finish()
             self.sup.safety.release(self.id)
             self.recovery = None

@@ -298,3 +298,42 @@ def test_timings_restart_never_negative() -> None:
     t = Timings(crashed=0.0, spawned=1.0, hello=1.01, restore_ms=50.0)
     assert t.breakdown()['restart_ms'] == 0.0
     assert t.breakdown()['restore_ms'] == 50.0
+
+
+def _numbers(seqs: range | list[int], topic: str = '/numbers') -> list[LogEntry]:
+    return [entry(topic, 1_000_000 * s, s) for s in seqs]
+
+
+def test_numbers_that_never_reached_the_host_are_a_gap_in_the_sequence(
+    segments: SegmentStore,
+) -> None:
+    # The node logged 1..10; the ring's backlog repeats 6..10, then 11..20 and, after a
+    # link outage longer than the DDS lease, 31..35: 21..30 never arrived.
+    rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 11))}})
+    rlog.add_many(_numbers(range(6, 21)))
+    assert rlog.gaps == []
+    rlog.add_many(_numbers(range(31, 36)))
+    rlog.seal()
+    rlog.add_many(_numbers([36, 38]))  # after the release, in the relay: still seen
+    assert [(g.topic, g.first, g.last, g.missing) for g in rlog.gaps] == [
+        ('/numbers', 21, 30, 10), ('/numbers', 37, 37, 1)]
+    assert rlog.gaps[0].to_json() == {'topic': '/numbers', 'first': 21, 'last': 30,
+                                      'missing': 10}
+
+
+def test_the_first_message_after_the_crash_is_checked_against_the_nodes_log(
+    segments: SegmentStore,
+) -> None:
+    rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 11))}})
+    rlog.add_many(_numbers([14, 15]))
+    assert [(g.first, g.last) for g in rlog.gaps] == [(11, 13)]
+
+
+def test_a_restarted_publisher_starts_a_new_sequence_without_a_gap(
+    segments: SegmentStore,
+) -> None:
+    rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 51))}})
+    restarted = [entry('/numbers', 9_000_000_000 + s, s) for s in (1, 2, 3)]
+    rlog.add_many(restarted)
+    assert rlog.gaps == []
+    assert [e.seq for e in rlog.entries] == [1, 2, 3]

@@ -1,0 +1,121 @@
+"""Recovery across hosts: the node and its supervisor on host a, its publisher on host b.
+
+Hosts are Linux network namespaces joined by a veth pair (rory_eval.hosts); every process
+speaks UDPv4 only (namespaces share /dev/shm: shared memory must not bypass the link) with
+discovery range SUBNET. The integrator is SIGKILLed mid-run; with nothing lost or applied
+twice its final history is exactly 1..N (rory_eval.scenario). Two outages of the link during
+the recovery show where the network's own guarantee ends, and that RORY reports it: its Fast
+DDS profile (rory_runtime/dds/fast_rediscovery.xml) declares a participant gone after a 1 s
+lease, so a shorter outage is bridged by DDS's reliable resends, and a longer one makes the
+publisher drop the readers on host a, and with them every number it sends until the hosts
+rediscover each other."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from rory_eval.hosts import Hosts, netns_available
+from rory_eval.multihost_bench import HostRun, Outage, run_on_hosts
+
+pytestmark = pytest.mark.ros
+
+COUNT = 225  # 4.5 s at 50 Hz: numbers still flow after the recovery and after the outage
+RATE = 50.0
+# Seconds after the first number: by then the node's warm standby (started 1 s after the node,
+# ready 0.5-1.6 s later here) is ready, so the replacement is its usual fast self.
+KILL_AT = 2.0
+
+
+@pytest.fixture
+def hosts(ros_domain: int) -> Iterator[Hosts]:
+    """Hosts a and b, named after this process and domain (parallel workers never collide)."""
+    ok, why = netns_available()
+    if not ok:
+        pytest.skip(f'no network namespaces here: {why}')
+    with Hosts(['a', 'b'], tag=f'd{ros_domain}', subnet=ros_domain) as made:
+        yield made
+
+
+def _run(hosts: Hosts, tmp_path: Path, domain: int, *, kill_at: float, interval: float,
+         outage: Outage | None = None) -> HostRun:
+    return run_on_hosts(
+        hosts, tmp_path, node_host=hosts['a'], publisher_host=hosts['b'], domain_id=domain,
+        count=COUNT, rate=RATE, kill_at=kill_at, interval=interval, outage=outage,
+    )
+
+
+def _recovered(run: HostRun) -> dict[str, object]:
+    recovered = [e for e in run.result.events if e['kind'] == 'recovered']
+    assert len(recovered) == 1, f'expected one recovery:\n{run.result.log[-3000:]}'
+    assert recovered[0]['crashes'] == 1
+    return recovered[0]
+
+
+def _assert_link_was_the_path(run: HostRun) -> None:
+    """Nothing from host b reached host a while the link was down; it came after."""
+    assert run.link_down is not None and run.link_up is not None
+    # 0.1 s: a callback may stamp a number that was already in host a's socket buffer.
+    assert run.seen_between(run.link_down + 0.1, run.link_up) == []
+    assert run.seen_between(run.link_up, run.link_up + 2.0), 'nothing came after the outage'
+
+
+def test_recovery_across_hosts_is_exact(hosts: Hosts, tmp_path: Path, ros_domain: int) -> None:
+    # Checkpoint every 1 s: restored from a checkpoint, then the numbers after its cut
+    # replayed - all of them sent over the link.
+    run = _run(hosts, tmp_path, ros_domain, kill_at=KILL_AT, interval=1.0)
+    recovered = _recovered(run)
+    hello = [e for e in run.result.events if e['kind'] == 'hello'][-1]
+    assert hello['mode'] == 'recover' and hello['restored'] is not None
+    assert int(str(recovered['replayed'])) > 0
+    assert run.result.history == list(range(1, COUNT + 1)), run.result.log[-3000:]
+    # /numbers crossed the veth (rx on host a's interface), not loopback or shared memory.
+    assert run.link_packets[0] > COUNT
+
+
+def test_short_link_outage_during_recovery_is_exact(
+    hosts: Hosts, tmp_path: Path, ros_domain: int
+) -> None:
+    # Killed before its first checkpoint (every 6 s): the replacement replays ~2 s of numbers,
+    # paced, and the link is down for 0.6 s from its spawn on (less than the 1 s lease).
+    run = _run(hosts, tmp_path, ros_domain, kill_at=KILL_AT, interval=6.0, outage=Outage(0.6))
+    recovered = _recovered(run)
+    _assert_link_was_the_path(run)
+    assert run.link_down is not None
+    assert run.link_down < float(str(recovered['t'])), 'the outage began after the release'
+    # DDS resent what was published during the outage once the link was back: nothing skipped,
+    # on host a and in the node alike.
+    assert [n for _, n in run.numbers_seen] == list(range(1, COUNT + 1))
+    assert run.result.history == list(range(1, COUNT + 1)), run.result.log[-3000:]
+
+
+def test_link_outage_longer_than_the_lease_loses_only_what_never_arrived_and_says_so(
+    hosts: Hosts, tmp_path: Path, ros_domain: int
+) -> None:
+    # The same, with the link down for 1.5 s. After 1 s without a word from host a the
+    # publisher on b drops its readers there (lease expired); what it sends until they are
+    # matched again is delivered to nobody on host a (volatile: a new match gets no history).
+    run = _run(hosts, tmp_path, ros_domain, kill_at=KILL_AT, interval=6.0, outage=Outage(1.5))
+    _recovered(run)
+    _assert_link_was_the_path(run)
+    assert run.link_down is not None and run.link_up is not None
+    assert run.published_from is not None
+    history = run.result.history
+    assert history == sorted(set(history)), 'applied twice or out of order'
+    missing = sorted(set(range(1, COUNT + 1)) - set(history))
+    assert missing, 'a 1.5 s outage lost nothing: has the lease changed?'
+    # One run of numbers, published (at RATE from number 1 on) while the link was down or
+    # before the hosts had rediscovered each other - the ones DDS dropped, nothing of RORY's.
+    assert missing == list(range(missing[0], missing[-1] + 1))
+    published = [run.published_from + (n - 1) / RATE for n in (missing[0], missing[-1])]
+    assert run.link_down - 0.1 <= published[0] and published[1] <= run.link_up + 1.0
+    # The observer on host a never got them either: they did not reach the host.
+    assert not set(missing) & {n for _, n in run.numbers_seen}
+    # RORY cannot bring back what never reached its host (a node that had not crashed lost
+    # them too), but it says so: an input_gap record with the exact range, and a warning.
+    gaps = [(e['topic'], e['first'], e['last']) for e in run.result.events
+            if e['kind'] == 'input_gap']
+    assert gaps == [('/numbers', missing[0], missing[-1])], run.result.log[-3000:]
+    assert 'never reached this host' in run.result.log

@@ -12,8 +12,8 @@ from rory_eval.target_crash import TARGETS, compare, run_under_rory
 pytestmark = pytest.mark.ros
 
 
-@pytest.mark.parametrize(('target', 'world'), [('grid_slam', 'office_small'),
-                                               ('amcl', 'real_room')])
+# grid_slam is struck with injected faults in test_target_faults.py.
+@pytest.mark.parametrize(('target', 'world'), [('amcl', 'real_room')])
 def test_killed_target_goes_on_exactly_as_without_the_crash(
     target: str, world: str, tmp_path: Path, ros_domain: int
 ) -> None:

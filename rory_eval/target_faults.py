@@ -1,0 +1,323 @@
+"""``make faults``, part two: the real targets in the simulator, struck by every kind of fault.
+
+For each target x world the target runs under RORY twice or more: once without a fault (the
+reference) and once per fault kind at a random sim time - SIGKILL, SIGSEGV, an uncaught
+exception in a callback, a callback that hangs (found by the heartbeat) - and once more with a
+second strike of a random kind soon after the replacement is spawned, i.e. during its recovery.
+The targets run unchanged under ``python -m rory_eval.flaky.inject`` (which wraps their
+subscription callbacks behind one-shot flag files) with the simulator's internal driver, so a
+run's inputs are identical to the reference's and a target's outputs are a deterministic
+function of them: a recovery that loses nothing and applies nothing twice leaves every pose the
+target publishes after its release byte for byte the reference's.
+
+A run is correct when every output it shares with the reference is identical, none after the
+release is missing, and the node did not give up. The table counts per fault: runs, correct
+recoveries, outputs missing after the release (a lost message shows as a later difference or a
+gap), outputs that differ (a message lost or applied twice changes every later pose of a SLAM
+or localizer), input messages reported lost (``input_gap``), give-ups.
+
+    python -m rory_eval.target_faults                     # 5 targets x 3 worlds (~40 min)
+    python -m rory_eval.target_faults --targets grid_slam --worlds office_small
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from rory_eval.flaky.inject import HANG_FLAG, RAISE_FLAG
+from rory_eval.simrun import REPO, SimRun
+from rory_eval.target_crash import TARGETS, Comparison, Target, compare
+
+FAULTS = ('SIGKILL', 'SIGSEGV', 'raise', 'hang')
+WORLDS = ('office_small', 'workshop', 'real_room')
+DURATION = 16.0  # sim seconds per run
+HANG_TIMEOUT = 3.0  # s: a callback blocked this long is hung (graph_slam's optimisation < 1 s)
+CLOCK_TIMEOUT = 90.0
+
+
+@dataclass(frozen=True)
+class Case:
+    """One faulted run."""
+
+    target: str
+    world: str
+    fault: str
+    at: float  # sim seconds
+    second: tuple[str, float] | None = None  # (fault, seconds after the replacement's spawn)
+
+    def label(self) -> str:
+        """Short description."""
+        again = '' if self.second is None else (
+            f', then {self.second[0]} {self.second[1]:.2f} s after the respawn')
+        return f'{self.target}/{self.world}: {self.fault} at {self.at:.1f} s{again}'
+
+
+@dataclass
+class Outcome:
+    """What one faulted run showed against its reference."""
+
+    case: Case
+    comparison: Comparison | None
+    strikes: int = 0
+    recoveries: int = 0
+    input_gaps: int = 0  # input messages reported never to have reached the host
+    gave_up: bool = False
+    error: str = ''
+
+    @property
+    def correct(self) -> bool:
+        """Exact outputs after the recovery, no give-up, every strike made."""
+        expected = 1 if self.case.second is None else 2
+        return (not self.error and not self.gave_up and self.comparison is not None
+                and self.comparison.exact and self.strikes == expected
+                and self.recoveries >= 1)
+
+    @property
+    def differing(self) -> int:
+        """Outputs at a shared stamp that differ from the reference."""
+        c = self.comparison
+        return 0 if c is None else c.common - c.identical
+
+
+def plan(targets: Sequence[str], worlds: Sequence[str], seed: int = 0) -> list[Case]:
+    """Every fault once per target x world, plus one double strike; random, seeded times."""
+    rng = random.Random(seed)
+    cases = []
+    for target in targets:
+        for world in worlds:
+            for fault in FAULTS:
+                cases.append(Case(target, world, fault, round(rng.uniform(3.0, 10.0), 2)))
+            cases.append(Case(target, world, rng.choice(FAULTS), round(rng.uniform(3.0, 10.0), 2),
+                              (rng.choice(FAULTS), round(rng.uniform(0.2, 1.0), 2))))
+    return cases
+
+
+def _events(store: Path) -> list[dict[str, Any]]:
+    path = store / 'events.jsonl'
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+class _Striker(threading.Thread):
+    """Delivers a case's faults: signals to the node's pid, flags into its working folder."""
+
+    def __init__(self, case: Case, sim_log: Path, world: str, folder: Path, store: Path) -> None:
+        super().__init__(daemon=True, name='striker')
+        self.case, self.sim_log, self.world = case, sim_log, world
+        self.folder, self.store = folder, store
+        self.strikes = 0
+        self.error = ''
+        self._finish = threading.Event()
+
+    def _spawns(self) -> list[dict[str, Any]]:
+        return [e for e in _events(self.store) if e['kind'] == 'spawn']
+
+    def _strike(self, fault: str) -> bool:
+        if fault in ('raise', 'hang'):
+            (self.folder / (RAISE_FLAG if fault == 'raise' else HANG_FLAG)).touch()
+        else:
+            spawns = self._spawns()
+            if not spawns:
+                self.error = 'the node was never spawned'
+                return False
+            try:
+                os.kill(int(spawns[-1]['pid']), signal.Signals[fault])
+            except ProcessLookupError:
+                self.error = f'{fault}: pid {spawns[-1]["pid"]} was already gone'
+                return False
+        self.strikes += 1
+        return True
+
+    def run(self) -> None:
+        deadline = time.monotonic() + CLOCK_TIMEOUT
+        while not (self.sim_log.exists() and f'{self.world}: running (seed'
+                   in self.sim_log.read_text(errors='replace')):
+            if self._finish.wait(0.05) or time.monotonic() > deadline:
+                self.error = 'the clock never started'
+                return
+        if self._finish.wait(self.case.at):
+            self.error = 'the run ended before the strike'
+            return
+        spawned = len(self._spawns())
+        if not self._strike(self.case.fault) or self.case.second is None:
+            return
+        fault, after = self.case.second
+        # The replacement: a spawn record beyond those before the first strike.
+        while len(self._spawns()) <= spawned:
+            if self._finish.wait(0.01):
+                self.error = 'the node was not respawned before the run ended'
+                return
+        if self._finish.wait(after):
+            self.error = 'the run ended before the second strike'
+            return
+        self._strike(fault)
+
+    def stop(self) -> None:
+        self._finish.set()
+        self.join(timeout=2.0)
+
+
+def run_target(target: Target, world: str, out: Path, *, domain_id: int,
+               case: Case | None = None, duration: float = DURATION,
+               instrumented: Path | None = None) -> tuple[dict[int, bytes], list[dict[str, Any]],
+                                                          _Striker | None]:
+    """One run under RORY with the fault injector; pose messages by stamp, events, striker."""
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from rclpy.serialization import serialize_message
+
+    out = out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    source = REPO / 'targets' / target.name
+    inst = instrumented or out / 'inst'
+    if not (inst / target.node_file).exists():
+        subprocess.run([sys.executable, '-m', 'rory_instrument', str(source), '--vars',
+                        str(source / 'keyvars.yaml'), '-o', str(inst)], check=True,
+                       capture_output=True)
+    store = out / 'store'
+    config = out / 'supervise.yaml'
+    command = ['python', '-m', 'rory_eval.flaky.inject', str(inst / target.node_file),
+               *target.argv(world)[2:]]
+    # No safe state: /e_stop would stop the simulator's driver and change every later input.
+    config.write_text(yaml.safe_dump({
+        'nodes': [{'name': target.name, 'command': command, 'method': 'rory',
+                   'checkpoint_interval': 2.0, 'replay': 'fast',
+                   'hang_timeout': HANG_TIMEOUT,
+                   # rory_eval must be importable from the node's folder (out/).
+                   'env': {'PYTHONPATH': str(REPO)}}],
+        'store': str(store),
+    }))
+    run = SimRun(world, out / 'run', domain_id=domain_id, duration=duration, depth=target.depth,
+                 wait_for={'/scan': 2}, sim_args=['--start-delay', '1.0'])
+    run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
+                                str(config)])
+    msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped
+    run.record(target.pose_topic, msg_type, qos=1000)
+    striker = None
+    if case is not None:
+        striker = _Striker(case, out / 'run' / 'sim.log', world, out, store)
+        striker.start()
+    try:
+        result = run.run()
+    finally:
+        if striker is not None:
+            striker.stop()
+    by_stamp = {}
+    for msg in result.messages[target.pose_topic]:
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        by_stamp[stamp] = bytes(serialize_message(msg))
+    return by_stamp, _events(store), striker
+
+
+def run_case(case: Case, reference: dict[int, bytes], out: Path, *, domain_id: int,
+             instrumented: Path | None = None) -> Outcome:
+    """One faulted run, judged against the reference."""
+    try:
+        crashed, events, striker = run_target(TARGETS[case.target], case.world, out,
+                                              domain_id=domain_id, case=case,
+                                              instrumented=instrumented)
+    except Exception as err:  # the run failed to run: reported in the table
+        return Outcome(case, None, error=f'{type(err).__name__}: {err}')
+    assert striker is not None
+    return Outcome(
+        case, compare(reference, crashed, events), strikes=striker.strikes,
+        recoveries=sum(e['kind'] == 'recovered' for e in events),
+        input_gaps=sum(int(e['missing']) for e in events if e['kind'] == 'input_gap'),
+        gave_up=any(e['kind'] == 'state' and e.get('new') == 'FATAL' for e in events),
+        error=striker.error)
+
+
+@dataclass
+class _Row:
+    runs: int = 0
+    correct: int = 0
+    missing: int = 0
+    differing: int = 0
+    gaps: int = 0
+    gave_up: int = 0
+    notes: list[str] = field(default_factory=list)
+
+
+def table(outcomes: Sequence[Outcome]) -> str:
+    """The campaign's Markdown table, one row per fault kind (double strikes apart)."""
+    rows: dict[str, _Row] = {}
+    for o in outcomes:
+        key = o.case.fault if o.case.second is None else 'second strike during recovery'
+        row = rows.setdefault(key, _Row())
+        row.runs += 1
+        row.correct += o.correct
+        row.missing += 0 if o.comparison is None else o.comparison.missing_after_release
+        row.differing += o.differing
+        row.gaps += o.input_gaps
+        row.gave_up += o.gave_up
+        if not o.correct:
+            row.notes.append(f'{o.case.label()}: {o.error or o.comparison}')
+    lines = ['| fault | runs | correct | outputs missing | outputs differing | '
+             'input messages lost | give-ups |', '|---|---:|---:|---:|---:|---:|---:|']
+    for key, r in rows.items():
+        lines.append(f'| {key} | {r.runs} | {r.correct} | {r.missing} | {r.differing} | '
+                     f'{r.gaps} | {r.gave_up} |')
+    total = _Row()
+    for r in rows.values():
+        total.runs += r.runs
+        total.correct += r.correct
+    lines.append(f'| **all** | {total.runs} | {total.correct} | | | | |')
+    notes = [n for r in rows.values() for n in r.notes]
+    return '\n'.join(lines + ([''] + [f'- {n}' for n in notes] if notes else []))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the campaign; print the table; exit 0 when every run was correct."""
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.target_faults',
+                                     description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--targets', nargs='+', default=sorted(TARGETS), choices=sorted(TARGETS))
+    parser.add_argument('--worlds', nargs='+', default=list(WORLDS), choices=WORLDS)
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--domain', type=int, default=96)
+    parser.add_argument('--out', type=Path, default=Path('faults-out'))
+    args = parser.parse_args(argv)
+    cases = plan(args.targets, args.worlds, args.seed)
+    started = time.monotonic()
+    outcomes: list[Outcome] = []
+    references: dict[tuple[str, str], dict[int, bytes]] = {}
+    for k, case in enumerate(cases, 1):
+        key = (case.target, case.world)
+        inst = args.out.resolve() / case.target / 'inst'
+        if key not in references:
+            references[key], _, _ = run_target(
+                TARGETS[case.target], case.world, args.out / case.target / case.world / 'ref',
+                domain_id=args.domain, instrumented=inst)
+        outcome = run_case(case, references[key],
+                           args.out / case.target / case.world / f'case{k}',
+                           domain_id=args.domain, instrumented=inst)
+        outcomes.append(outcome)
+        print(f'[{k}/{len(cases)}] {case.label()}: '
+              f'{"correct" if outcome.correct else "WRONG"} '
+              f'({outcome.recoveries} recoveries, {outcome.strikes} strikes'
+              f'{", " + outcome.error if outcome.error else ""})', flush=True)
+    print()
+    print(table(outcomes))
+    counts = Counter(o.correct for o in outcomes)
+    print(f'\n{counts[True]}/{len(outcomes)} correct in {(time.monotonic() - started) / 60:.1f} '
+          'min')
+    return 0 if counts[False] == 0 else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -340,14 +340,19 @@ class Recovery:
         self.safety.hold(self.node_id)
         self.timings.s1_done = time.monotonic()
 
-    def s2_isolate(self) -> None:
-        """S2: the ring takes over the node's inputs; their messages go to R, not to the node."""
+    def s2_isolate(self, early: list[LogEntry] | None = None) -> None:
+        """S2: the ring takes over the node's inputs; their messages go to R, not to the node.
+
+        Args:
+            early: What the ring took since the node's heartbeat went late, if it did
+                (``ManagedNode._watch_stall``): R starts from it.
+        """
         if self.ring is not None and (self.rlog is None or self.rlog.sealed):
             self.rlog = RecoveryLog(
                 self.segments, absorbed_identities(self.checkpoints, self.segments),
                 self.ring.offered_qos,
             )
-            self.ring.activate(self.rlog.add)
+            self.ring.activate(self.rlog.add, early)
         self.timings.s2_done = time.monotonic()
 
     def again(self, crashed: float) -> None:

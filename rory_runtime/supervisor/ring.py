@@ -198,9 +198,14 @@ class Ring:
         reader = self.topics.get(topic)
         return [] if reader is None else offered_qos(reader.node, topic)
 
-    def activate(self, sink: Sink) -> None:
+    def activate(self, sink: Sink, before: list[LogEntry] | None = None) -> None:
         """Activate every topic: ``sink`` gets what they held, in receive order, then each new
         message as it comes.
+
+        ``before``: entries an earlier activation delivered into this list (an early capture);
+        they go to ``sink`` first, read under the lock that the delivery thread takes too, so
+        none is missed between the two sinks. Repeats of them in what the ring holds reach
+        ``sink`` again (the recovery log drops known identities).
 
         The ring's executor thread may take a new message before the backlog is delivered;
         ``_deliver`` waits on the same lock, so nothing overtakes the backlog (under load it
@@ -208,7 +213,7 @@ class Ring:
         """
         with self._order:
             self._sink = sink
-            held: list[LogEntry] = []
+            held: list[LogEntry] = list(before or ())
             for topic in self.topics.values():
                 held.extend(topic.activate(self._deliver))
             held.sort(key=lambda e: e.recv_ns)

@@ -38,7 +38,7 @@ from ..dds import fast_rediscovery_env
 from ..errors import ProtocolError
 from ..fsutil import make_private_dir
 from ..inflight import read_beat, slot_path
-from ..log import SegmentStore, default_typestore
+from ..log import LogEntry, SegmentStore, default_typestore
 from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
 from .config import NodeConfig, SupervisorConfig
@@ -87,6 +87,11 @@ STANDBY_DELAY = 1.0
 imports must not compete with the node's own start or recovery for the CPU."""
 
 HANG_DUMP_GRACE = 0.3
+# A heartbeat this late (3 beats; at most half of hang_timeout) may be a hang: the ring starts
+# taking the node's inputs (S2 early). A hang lasts hang_timeout before the kill, longer than
+# the ring's history covers on a busy topic (node depth + 16 messages: 2.3 s of 50 Hz odometry
+# for a depth of 100); from here on nothing is dropped however long the hang.
+STALL_SUSPECT = 0.6
 """Seconds between SIGUSR1 (a hung node prints its threads' stacks) and SIGKILL."""
 
 # States in which a node has a process that must beat.
@@ -212,6 +217,8 @@ class ManagedNode:
         self.standby_for: int | None = None  # the incarnation whose successor is on standby
         self.crashes_total = 0
         self.reported_gaps: set[InputGap] = set()  # input gaps already logged (recovery.py)
+        # What the ring took since the heartbeat went late (None: not capturing).
+        self.early_capture: list[LogEntry] | None = None
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
         self.last_checkpoint_at: float | None = None  # monotonic
         self.replay_pub = protocol.SignedPublisher(sup.ros_node.create_publisher(
@@ -341,6 +348,7 @@ class ManagedNode:
             self.sm.change_state(NodeState.EXITED, how)
             self._drop_standby()
             self._end_recovery()
+            self._stop_early_capture('exited')
             return
         self.crashes_total += 1
         ran_for = 0.0 if self.running_since is None else ev.at - self.running_since
@@ -407,7 +415,8 @@ class ManagedNode:
         )
         self.recovery = rec
         rec.s1_safe_state()
-        rec.s2_isolate()
+        early, self.early_capture = self.early_capture, None
+        rec.s2_isolate(early)
 
     def _restart(self) -> None:
         self.restart_at = None
@@ -561,9 +570,11 @@ class ManagedNode:
             self.reported_gaps.add(gap)
             _logger.warning(
                 '%s %s: input %s: %d messages (publication seq %d-%d) never reached this host '
-                'while the node was down: DDS dropped them (a link outage longer than the '
-                'lease drops remote readers); a node that had not crashed would not have had '
-                'them either', LOG_PREFIX, self.id, gap.topic, gap.missing, gap.first, gap.last)
+                'while the node was down, so they cannot be replayed: DDS dropped them before '
+                "RORY's reader took them (a link outage longer than the DDS lease drops remote "
+                'readers, and a node that had not crashed would have missed them too; or more '
+                "arrived than the reader's history holds)", LOG_PREFIX, self.id, gap.topic,
+                gap.missing, gap.first, gap.last)
             self.sup.events_log.write('input_gap', self.id, **gap.to_json())
         return new
 
@@ -649,6 +660,7 @@ class ManagedNode:
             limit, since, what = self.cfg.start_timeout, self.spawned_ns, 'start'
         else:
             limit, since, what = self.cfg.hang_timeout, beat, 'heartbeat'
+            self._watch_stall((now_ns - beat) / 1e9)
             if self.first_beat_ns is None:
                 self.first_beat_ns = now_ns
             if self.hello is None and now_ns - self.first_beat_ns > HELLO_TIMEOUT * 1e9:
@@ -676,6 +688,34 @@ class ManagedNode:
         else:
             self.hang_kill_at = float('inf')
             child.send_signal(signal.SIGKILL)
+
+    def _watch_stall(self, stalled: float) -> None:
+        """S2 early: while the heartbeat is late, the ring keeps every input message.
+
+        If the node is then killed as hung (or dies), its recovery starts from all of them
+        (``_crashed``); if it beats again, it was only slow and the capture is dropped.
+        """
+        ring = self.ring if self.cfg.method.logs else None
+        if ring is None or self.sm.state != NodeState.RUNNING or self.recovery is not None:
+            return
+        limit = self.cfg.hang_timeout
+        suspect = STALL_SUSPECT if limit is None else min(STALL_SUSPECT, limit / 2)
+        if stalled >= suspect and self.early_capture is None:
+            self.early_capture = []
+            ring.activate(self.early_capture.append)
+            _logger.info('%s %s: no heartbeat for %.1f s: RORY keeps its inputs from now on',
+                         LOG_PREFIX, self.id, stalled)
+        elif stalled < suspect and self.early_capture is not None:
+            self._stop_early_capture(f'beating again ({len(self.early_capture)} messages '
+                                     'kept meanwhile, dropped)')
+
+    def _stop_early_capture(self, why: str) -> None:
+        if self.early_capture is None:
+            return
+        self.early_capture = None
+        if self.ring is not None:
+            self.ring.deactivate()
+        _logger.info('%s %s: input capture stopped: %s', LOG_PREFIX, self.id, why)
 
     def _unheard(self, child: Child, beating_for: float, now: float) -> None:
         """The process runs but its HELLO never arrived: replace it (a crash, recovered)."""

@@ -60,3 +60,21 @@ def test_a_hung_node_is_killed_recovered_and_its_hanging_message_quarantined(
     assert result.state['history'] == [n for n in range(1, 151) if n != 77]
     # SIGUSR1 before the kill: the node printed where it hung
     assert 'in on_number' in result.log, result.log[-3000:]
+
+
+def test_a_hang_longer_than_the_ring_holds_loses_nothing(tmp_path: Path, ros_domain: int) -> None:
+    # The flaky integrator (queue depth 100, so its ring keeps 116 messages) hangs once at
+    # 50 Hz; hang_timeout 4 s lets ~200 numbers arrive before the kill. The ring starts taking
+    # them when the heartbeat is 0.6 s late, so the replacement gets every one.
+    from rory_eval.fault_campaign import FLAKY_DIR
+    from rory_eval.scenario import Kill
+
+    program = Program(FLAKY_DIR, FLAKY_DIR / 'keyvars.yaml', 'flaky_integrator.py',
+                      '/integrator/state', 'integrator', settings=(('hang_timeout', 4.0),))
+    result = run('rory', (Kill(after=1.5, how='hang'),), tmp_path, domain_id=ros_domain,
+                 count=400, rate=50.0, interval=1.0, pace='fast', program=program, timeout=120)
+    hangs = [e for e in result.events if e['kind'] == 'hang']
+    assert len(hangs) == 1 and hangs[0]['stalled_s'] > 4.0, result.log[-3000:]
+    assert 'RORY keeps its inputs from now on' in result.log
+    assert not [e for e in result.events if e['kind'] == 'input_gap'], result.log[-3000:]
+    assert result.history == list(range(1, 401)), result.log[-3000:]

@@ -206,6 +206,7 @@ class _Observer:
         )
         self.state: Any = {}
         self.state_changed = time.monotonic()
+        self.state_heard = 0.0  # the last state message, changed or not
         self.e_stop: list[tuple[float, bool]] = []
         # Volatile: matches latched and plain state publishers alike (a transient-local reader
         # does not match a volatile writer); this observer starts before the node anyway.
@@ -223,6 +224,7 @@ class _Observer:
 
     def _on_state(self, msg: String) -> None:
         state = json.loads(msg.data)
+        self.state_heard = time.monotonic()
         if state != self.state:
             self.state = state
             self.state_changed = time.monotonic()
@@ -341,8 +343,14 @@ def run(
                             tracker.respawned_at = None
                     published = pub.poll() is not None
                     # Settled: no news from the node for a while since it last became RUNNING
-                    # (a recovered node publishes its state on its 1 Hz timer).
-                    settled = now - max(observer.state_changed, tracker.running_since) > 2.5
+                    # (a recovered node publishes its state on its 1 Hz timer). Until this
+                    # observer has heard the current process at all, wait longer: a cold
+                    # restart can take seconds to be discovered (FACTS.md), and judging the
+                    # state an earlier process published would report its losses, not the
+                    # node's (a campaign run judged 102 numbers lost that the node had).
+                    heard = observer.state_heard >= tracker.running_since
+                    quiet = now - max(observer.state_changed, tracker.running_since)
+                    settled = quiet > (2.5 if heard else 8.0)
                     complete = isinstance(observer.state, dict) and (
                         observer.state.get('count') == count
                     )

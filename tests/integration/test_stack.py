@@ -1,6 +1,7 @@
-"""A whole stack (AMCL + navigator) under one supervisor in the simulator: one node struck alone
-recovers while the other keeps running; both struck at once both recover; /e_stop is held from
-the first S1 to the last S4; the robot still reaches its goal without a collision."""
+"""A whole stack (AMCL + navigator) under one supervisor in the simulator, each with its own
+method (AMCL rory, the navigator replay): one node struck alone recovers while the other keeps
+running; both struck at once both recover; /e_stop is held from the first S1 to the last S4;
+the robot still reaches its goal without a collision."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ def test_a_stack_recovers_one_node_while_the_other_runs_and_two_at_once(
     tmp_path: Path, ros_domain: int
 ) -> None:
     result = run_stack('real_room', tmp_path, domain_id=ros_domain, strikes=[
-        Strike(ALONE, ('amcl',)), Strike(TOGETHER, ('amcl', 'navigator'))])
+        Strike(ALONE, ('amcl',)), Strike(TOGETHER, ('amcl', 'navigator'))],
+        methods={'amcl': 'rory', 'navigator': 'replay'})
     assert not result.errors
     struck = [(node, t) for t, node, _ in result.strikes]
     assert [node for node, _ in struck] == ['amcl', 'amcl', 'navigator']
@@ -37,6 +39,8 @@ def test_a_stack_recovers_one_node_while_the_other_runs_and_two_at_once(
     # Both struck together: both recovered.
     navigator_recoveries = result.recoveries('navigator')
     assert len(navigator_recoveries) == 1
+    assert amcl_recoveries[1]['method'] == 'rory'
+    assert navigator_recoveries[0]['method'] == 'replay'
     first_back, last_back = sorted([amcl_recoveries[1]['t'], navigator_recoveries[0]['t']])
 
     # The shared stop: held once per episode, released only when the last node was back.

@@ -23,9 +23,10 @@ lint: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m mypy
 
-# worksteal: the long simulator tests do not leave one worker idle at the end.
+# (--dist worksteal finished in 11.8 min instead of 14.2, but ran the simulator tests side by
+# side and three of their output-count checks failed on the starved 2 cores: not used.)
 test: lint
-	$(PY) -m pytest -n 2 --dist worksteal --durations=15
+	$(PY) -m pytest -n 2 --durations=15
 
 # The paper's Tables I-IV and figures: 6 targets x 3 worlds x 4 methods x 5 runs (hours;
 # interrupted, it goes on where it stopped). Results in eval-out/results.md.

@@ -31,7 +31,7 @@ from typing import Any
 
 import yaml
 
-from rory_eval.simrun import LATCHED, REPO, SimRun, SimRunResult
+from rory_eval.simrun import LATCHED, REPO, SimRun, SimRunResult, store_events
 
 ROBOTS = ('robot1', 'robot2')
 POSE = 'grid_slam/pose'
@@ -160,9 +160,7 @@ def run_fleet(world: str, out: Path, *, domain_id: int, kill_at: float = 6.0,
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             poses[stamp] = bytes(serialize_message(msg))
             received[stamp] = at
-        events_path = out / robot / 'store' / 'events.jsonl'
-        events = [yaml.safe_load(line) for line in events_path.read_text().splitlines()
-                  if line.strip()] if events_path.exists() else []
+        events = store_events(out / robot / 'store')
         robots[robot] = Robot(robot, poses, received,
                               [bool(m.data) for m in result.messages[f'/{robot}/{SAFE_TOPIC}']],
                               events, result.log('supervisor'),

@@ -53,6 +53,31 @@ LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
 """Reliable, transient local, depth 1: what /goal_pose, /e_stop and maps are sent with."""
 
 
+def store_events(store: Path) -> list[dict[str, Any]]:
+    """The records of a supervisor's ``<store>/events.jsonl`` so far (none before it exists).
+
+    A line still being written (or cut by a stop) is skipped.
+    """
+    path = store / 'events.jsonl'
+    if not path.exists():
+        return []
+    records = []
+    for line in path.read_text(errors='replace').splitlines():
+        with contextlib.suppress(json.JSONDecodeError):
+            records.append(json.loads(line))
+    return records
+
+
+def wait_for_clock(sim_log: Path, world: str, stop: threading.Event, timeout: float) -> bool:
+    """Wait until the simulator's clock runs (its log says so); False if stopped or timed out."""
+    deadline = time.monotonic() + timeout
+    while not (sim_log.exists()
+               and f'{world}: running (seed' in sim_log.read_text(errors='replace')):
+        if stop.wait(0.05) or time.monotonic() > deadline:
+            return False
+    return True
+
+
 class SimRunError(RuntimeError):
     """A process of the run failed; the message names it and ends with its log's tail."""
 

@@ -12,7 +12,6 @@ moment (all recover; the stop is held from the first one's S1 until the last one
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import signal
@@ -27,7 +26,7 @@ from typing import Any
 
 import yaml
 
-from rory_eval.simrun import LATCHED, REPO, SimRun
+from rory_eval.simrun import LATCHED, REPO, SimRun, store_events, wait_for_clock
 
 NODES = ('amcl', 'navigator')
 GOAL_XY = 0.25  # m, as the evaluation's judge (rory_eval/evaluation/judge.py)
@@ -111,13 +110,6 @@ def stack_config(world: str, out: Path, methods: dict[str, str]) -> Path:
     return path
 
 
-def _events(store: Path) -> list[dict[str, Any]]:
-    path = store / 'events.jsonl'
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-
-
 class _Striker(threading.Thread):
     """Kills the named nodes at their sim times (the clock runs at wall pace)."""
 
@@ -131,18 +123,15 @@ class _Striker(threading.Thread):
         self._finish = threading.Event()
 
     def run(self) -> None:
-        deadline = time.monotonic() + CLOCK_TIMEOUT
-        while not (self.sim_log.exists() and f'{self.world}: running (seed'
-                   in self.sim_log.read_text(errors='replace')):
-            if self._finish.wait(0.05) or time.monotonic() > deadline:
-                self.errors.append('the clock never started')
-                return
+        if not wait_for_clock(self.sim_log, self.world, self._finish, CLOCK_TIMEOUT):
+            self.errors.append('the clock never started')
+            return
         start = time.monotonic()
         for strike in self.strikes:
             if self._finish.wait(max(0.0, start + strike.at - time.monotonic())):
                 self.errors.append(f'the run ended before the strike at {strike.at} s')
                 return
-            spawns = _events(self.store)
+            spawns = store_events(self.store)
             pids = {}
             for node in strike.nodes:
                 mine = [e for e in spawns if e['kind'] == 'spawn' and e['node'] == node]
@@ -209,7 +198,7 @@ def run_stack(world: str, out: Path, *, domain_id: int, strikes: Sequence[Strike
         distance = math.hypot(x - goal.x, y - goal.y)
     reached = bool(statuses) and statuses[-1] == 'REACHED' and distance <= GOAL_XY
     return StackResult(world, reached, distance, int(result.summary.get('collisions', 0)),
-                       statuses, _events(store), striker.done, e_stop, striker.errors)
+                       statuses, store_events(store), striker.done, e_stop, striker.errors)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -23,7 +23,6 @@ or localizer), input messages reported lost (``input_gap``), give-ups.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import random
 import signal
@@ -40,7 +39,7 @@ from typing import Any
 import yaml
 
 from rory_eval.flaky.inject import HANG_FLAG, RAISE_FLAG
-from rory_eval.simrun import REPO, SimRun
+from rory_eval.simrun import REPO, SimRun, store_events, wait_for_clock
 from rory_eval.target_crash import TARGETS, Comparison, Target, compare
 
 FAULTS = ('SIGKILL', 'SIGSEGV', 'raise', 'hang')
@@ -109,13 +108,6 @@ def plan(targets: Sequence[str], worlds: Sequence[str], seed: int = 0) -> list[C
     return cases
 
 
-def _events(store: Path) -> list[dict[str, Any]]:
-    path = store / 'events.jsonl'
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-
-
 class _Striker(threading.Thread):
     """Delivers a case's faults: signals to the node's pid, flags into its working folder."""
 
@@ -128,7 +120,7 @@ class _Striker(threading.Thread):
         self._finish = threading.Event()
 
     def _spawns(self) -> list[dict[str, Any]]:
-        return [e for e in _events(self.store) if e['kind'] == 'spawn']
+        return [e for e in store_events(self.store) if e['kind'] == 'spawn']
 
     def _strike(self, fault: str) -> bool:
         if fault in ('raise', 'hang'):
@@ -147,12 +139,9 @@ class _Striker(threading.Thread):
         return True
 
     def run(self) -> None:
-        deadline = time.monotonic() + CLOCK_TIMEOUT
-        while not (self.sim_log.exists() and f'{self.world}: running (seed'
-                   in self.sim_log.read_text(errors='replace')):
-            if self._finish.wait(0.05) or time.monotonic() > deadline:
-                self.error = 'the clock never started'
-                return
+        if not wait_for_clock(self.sim_log, self.world, self._finish, CLOCK_TIMEOUT):
+            self.error = 'the clock never started'
+            return
         if self._finish.wait(self.case.at):
             self.error = 'the run ended before the strike'
             return
@@ -223,7 +212,7 @@ def run_target(target: Target, world: str, out: Path, *, domain_id: int,
     for msg in result.messages[target.pose_topic]:
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         by_stamp[stamp] = bytes(serialize_message(msg))
-    return by_stamp, _events(store), striker
+    return by_stamp, store_events(store), striker
 
 
 def run_case(case: Case, reference: dict[int, bytes], out: Path, *, domain_id: int,

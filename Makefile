@@ -23,10 +23,12 @@ lint: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m mypy
 
-# (--dist worksteal finished in 11.8 min instead of 14.2, but ran the simulator tests side by
-# side and three of their output-count checks failed on the starved 2 cores: not used.)
+# --dist loadgroup: the simulator tests form one group (tests/conftest.py), run one after
+# another on one worker; every other test is handed out one at a time. xdist's default
+# distribution left one worker idle for the last ~7 minutes (16 min in all); worksteal ran the
+# simulator tests side by side and three of their output-count checks failed on 2 cores.
 test: lint
-	$(PY) -m pytest -n 2 --durations=15
+	$(PY) -m pytest -n 2 --dist loadgroup --durations=15
 
 # The paper's Tables I-IV and figures: 6 targets x 3 worlds x 4 methods x 5 runs (hours;
 # interrupted, it goes on where it stopped). Results in eval-out/results.md.

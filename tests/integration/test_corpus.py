@@ -30,7 +30,10 @@ STYLES = {
     'keyword_subscription': 'kwargs_sub.py',
     'derived_with_time': 'derived.py',
 }
-COUNT = 250  # 5 s at 50 Hz
+COUNT = 150  # 3 s at 50 Hz
+# The node checkpoints every 2 s from its start, about 1 s before the first number arrives:
+# killed 1.8 s into the numbers, it is between its first and second checkpoints.
+KILL_AFTER = 1.8
 
 
 @pytest.mark.parametrize('style', STYLES)
@@ -39,7 +42,7 @@ def test_style_recovers_exactly(style: str, tmp_path: Path, ros_domain: int) -> 
     common = {'domain_id': ros_domain, 'count': COUNT, 'interval': None, 'pace': None,
               'program': program}
     reference = run('rory', (), tmp_path / 'reference', **common)  # type: ignore[arg-type]
-    crashed = run('rory', (Kill(after=2.5),), tmp_path / 'crashed', **common)  # type: ignore[arg-type]
+    crashed = run('rory', (Kill(after=KILL_AFTER),), tmp_path / 'crashed', **common)  # type: ignore[arg-type]
     assert reference.state, 'the node published no state'
     assert len(crashed.recoveries) == 1
     assert crashed.recoveries[0]['replayed'] > 0

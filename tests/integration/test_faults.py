@@ -53,7 +53,10 @@ def test_a_hung_node_is_killed_recovered_and_its_hanging_message_quarantined(
     # 1: hangs live on 77; 2: hangs again when the replay reaches 77 -> quarantined; 3: goes on
     assert len(hangs) == 2, result.log[-3000:]
     assert all(h['topic'] == '/numbers' and h['waiting_for'] == 'heartbeat' for h in hangs)
-    assert all(1.5 < h['stalled_s'] < 3.0 for h in hangs)
+    # Killed for the heartbeat, not sooner. How much later depends on when the supervisor's
+    # tick next runs: on a loaded 2-core CI machine that was once past 3 s, so the upper bound
+    # only rules out a hang found by some other way (the harness's own timeout).
+    assert all(1.5 < h['stalled_s'] < 15.0 for h in hangs), hangs
     exits = [e for e in result.events if e['kind'] == 'exit']
     assert [e['code'] for e in exits] == [-9, -9]
     assert [e['kind'] for e in result.events].count('quarantined') == 1

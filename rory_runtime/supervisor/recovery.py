@@ -117,6 +117,7 @@ class RecoveryLog:
         # nothing of what was sent meanwhile). Seeded with what the node last logged.
         self._last_seq = {topic: max(seq for _, seq in ids) for topic, ids in known.items()
                           if ids}
+        self._seeded = dict(self._last_seq)
         self.gaps: list[InputGap] = []
 
     def add(self, entry: LogEntry) -> None:
@@ -154,6 +155,27 @@ class RecoveryLog:
         if last is not None and entry.seq > last + 1 and not known:
             self.gaps.append(InputGap(entry.topic, last + 1, entry.seq - 1, entry.recv_ns))
         self._last_seq[entry.topic] = entry.seq
+
+    def summary(self) -> dict[str, dict[str, int | None]]:
+        """Per topic: the last sequence number logged before R, and what R itself holds.
+
+        Goes into the ``recovered`` event, so that a loss found later can be placed: before
+        R (the logs), inside it, or after it (the handover).
+        """
+        with self.cond:
+            held: dict[str, list[int]] = {}
+            for entry in self.entries:
+                held.setdefault(entry.topic, []).append(entry.seq)
+            topics = sorted(set(held) | set(self._seeded))
+            return {
+                topic: {
+                    'logged_through': self._seeded.get(topic),
+                    'entries': len(held.get(topic, ())),
+                    'first_seq': min(held[topic]) if topic in held else None,
+                    'last_seq': max(held[topic]) if topic in held else None,
+                }
+                for topic in topics
+            }
 
     def add_many(self, entries: list[LogEntry]) -> None:
         """Record a backlog, already in receive order."""
@@ -416,6 +438,10 @@ class Recovery:
             return []
         with self.rlog.cond:
             return [gap for gap in self.rlog.gaps if trustworthy(gap.topic)]
+
+    def r_summary(self) -> dict[str, dict[str, int | None]]:
+        """What R holds per topic (:meth:`RecoveryLog.summary`); empty without R."""
+        return {} if self.rlog is None else self.rlog.summary()
 
     def on_switched(self, topic: str) -> bool:
         """A topic is live again; stop relaying it. Returns True when every topic is."""

@@ -544,7 +544,7 @@ class ManagedNode:
             self.sup.events_log.write(
                 'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
                 incarnation=self.incarnation, replay=pace, **timing, **stats,
-                input_gaps=[g.to_json() for g in gaps],
+                input_gaps=[g.to_json() for g in gaps], r_log=rec.r_summary(),
             )
             if rec.ring is None or not rec.ring.active_topics:
                 self._end_recovery()

@@ -337,3 +337,17 @@ def test_a_restarted_publisher_starts_a_new_sequence_without_a_gap(
     rlog.add_many(restarted)
     assert rlog.gaps == []
     assert [e.seq for e in rlog.entries] == [1, 2, 3]
+
+
+def test_the_summary_places_r_after_what_the_node_logged(segments: SegmentStore) -> None:
+    # The node logged 1..10; R repeats 6..10 (dropped as known) and takes 11..20; after the
+    # seal, 21 goes to the relay and is not part of R.
+    rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 11))}})
+    rlog.add_many(_numbers(range(6, 21)))
+    rlog.add(entry('/odom', 5_000_000, 7))
+    rlog.seal()
+    rlog.add_many(_numbers([21]))
+    assert rlog.summary() == {
+        '/numbers': {'logged_through': 10, 'entries': 10, 'first_seq': 11, 'last_seq': 20},
+        '/odom': {'logged_through': None, 'entries': 1, 'first_seq': 7, 'last_seq': 7},
+    }

@@ -81,6 +81,10 @@ class InputGap:
     first: int
     last: int
     seen_after_ns: int  # receive time of the message after the gap
+    # Publishers the ring's reader was matched with when it saw the gap (-1: unknown). With
+    # one, the numbers are that publisher's alone; judged then, not when the gap is reported
+    # (by then the publisher may have finished and left).
+    publishers: int = -1
 
     @property
     def missing(self) -> int:
@@ -100,8 +104,10 @@ class RecoveryLog:
     """
 
     def __init__(self, segments: SegmentStore, known: dict[str, set[MessageId]],
-                 offered_qos: Callable[[str], Sequence[Qos]] | None = None) -> None:
+                 offered_qos: Callable[[str], Sequence[Qos]] | None = None,
+                 publishers: Callable[[str], int] | None = None) -> None:
         self._offered_qos = offered_qos
+        self._publishers = publishers
         self.number = segments.next_number()
         self._writer: SegmentWriter | None = segments.open(self.number)
         self._known = known
@@ -153,7 +159,10 @@ class RecoveryLog:
                 self._last_seq[entry.topic] = entry.seq
             return
         if last is not None and entry.seq > last + 1 and not known:
-            self.gaps.append(InputGap(entry.topic, last + 1, entry.seq - 1, entry.recv_ns))
+            count = -1 if self._publishers is None else self._publishers(entry.topic)
+            self.gaps.append(
+                InputGap(entry.topic, last + 1, entry.seq - 1, entry.recv_ns, count)
+            )
         self._last_seq[entry.topic] = entry.seq
 
     def summary(self) -> dict[str, dict[str, int | None]]:
@@ -372,7 +381,7 @@ class Recovery:
         if self.ring is not None and (self.rlog is None or self.rlog.sealed):
             self.rlog = RecoveryLog(
                 self.segments, absorbed_identities(self.checkpoints, self.segments),
-                self.ring.offered_qos,
+                self.ring.offered_qos, self.ring.publisher_count,
             )
             self.ring.activate(self.rlog.add, early)
         self.timings.s2_done = time.monotonic()
@@ -427,17 +436,17 @@ class Recovery:
         self.stats = dict(node_stats)
         return self.timings.breakdown()
 
-    def input_gaps(self, trustworthy: Callable[[str], bool]) -> list[InputGap]:
+    def input_gaps(self, trustworthy: Callable[[InputGap], bool]) -> list[InputGap]:
         """Gaps in the inputs' sequence numbers seen by this recovery so far.
 
         Args:
-            trustworthy: Whether a topic's sequence numbers are one publisher's, reliably sent
+            trustworthy: Whether a gap's sequence numbers are one publisher's, reliably sent
                 (with two publishers they interleave; best effort loses by design).
         """
         if self.rlog is None:
             return []
         with self.rlog.cond:
-            return [gap for gap in self.rlog.gaps if trustworthy(gap.topic)]
+            return [gap for gap in self.rlog.gaps if trustworthy(gap)]
 
     def r_summary(self) -> dict[str, dict[str, int | None]]:
         """What R holds per topic (:meth:`RecoveryLog.summary`); empty without R."""

@@ -119,12 +119,30 @@ class RingTopic:
         )
 
     def _on_message(self, raw: bytes, info: dict[str, Any]) -> None:
-        entry = self._entry(raw, info)
+        entries = [self._entry(raw, info)]
         with self._lock:
-            self.retained.append(entry)
+            # Take everything already waiting, not one message per executor round (a round
+            # rebuilds the wait set, many times the cost of a take), so the reader's history
+            # is emptied as soon as this thread runs. It does not save a burst sent faster
+            # than Python takes (a publisher catching up after a stall): what exceeds the
+            # history is dropped, oldest first, by DDS itself; R's sequence check reports it.
+            entries.extend(self._take_waiting())
+            self.retained.extend(entries)
             sink = self._sink
         if sink is not None:
-            sink(entry)
+            for entry in entries:
+                sink(entry)
+
+    def _take_waiting(self) -> list[LogEntry]:
+        """Everything DDS holds for this reader now, oldest first (caller holds the lock)."""
+        taken: list[LogEntry] = []
+        with self.sub.handle:
+            while True:
+                message = self.sub.handle.take_message(self._msg_type, True)
+                if message is None:
+                    return taken
+                raw, info = message
+                taken.append(self._entry(raw, info))
 
     def publisher_count(self) -> int:
         """Publishers this reader is matched with."""
@@ -139,15 +157,9 @@ class RingTopic:
         """
         with self._lock:
             held = list(self.retained)
-            with self.sub.handle:
-                while True:
-                    taken = self.sub.handle.take_message(self._msg_type, True)
-                    if taken is None:
-                        break
-                    raw, info = taken
-                    entry = self._entry(raw, info)
-                    self.retained.append(entry)
-                    held.append(entry)
+            taken = self._take_waiting()
+            self.retained.extend(taken)
+            held.extend(taken)
             self._sink = sink
         if not self.active:
             self.active = True
@@ -188,6 +200,11 @@ class Ring:
             if current is not None:
                 current.destroy()
             self.topics[spec.topic] = RingTopic(self._ctx, self.node_id, len(self.topics), spec)
+
+    def publisher_count(self, topic: str) -> int:
+        """Publishers the reader of ``topic`` is matched with (0 without a reader)."""
+        reader = self.topics.get(topic)
+        return 0 if reader is None else reader.publisher_count()
 
     def publisher_counts(self) -> dict[str, int]:
         """Matched publishers per topic."""

@@ -560,10 +560,12 @@ class ManagedNode:
         """
         ring = rec.ring
 
-        def trustworthy(topic: str) -> bool:
-            reader = ring.topics.get(topic) if ring is not None else None
-            return (reader is not None and reader.spec.reliable
-                    and reader.publisher_count() == 1)
+        def trustworthy(gap: InputGap) -> bool:
+            reader = ring.topics.get(gap.topic) if ring is not None else None
+            if reader is None or not reader.spec.reliable:
+                return False
+            publishers = gap.publishers if gap.publishers >= 0 else reader.publisher_count()
+            return publishers == 1
 
         new = [g for g in rec.input_gaps(trustworthy) if g not in self.reported_gaps]
         for gap in new:
@@ -628,6 +630,11 @@ class ManagedNode:
         state = self.sm.state
         if state in _LIVE:
             self._check_heartbeat(now)
+        if state == NodeState.RUNNING and self.recovery is not None:
+            # Released, still relaying until every topic is live again: a gap the relay shows
+            # (a message lost between R and the live reader) is said now, not only at the end
+            # of a handover that may never end (a topic whose publisher stops).
+            self._report_input_gaps(self.recovery)
         if (state == NodeState.RUNNING and self.cfg.warm_standby
                 and self.standby_for != self.incarnation and self.running_since is not None
                 and now - self.running_since >= STANDBY_DELAY):
@@ -737,6 +744,7 @@ class ManagedNode:
         self.sm.change_state(NodeState.STOPPING, 'supervisor stopping')
         self._drop_standby()
         if self.recovery is not None:
+            self._report_input_gaps(self.recovery)
             self.recovery.finish()
         child = self.child
         if child is not None:

@@ -321,6 +321,20 @@ def test_numbers_that_never_reached_the_host_are_a_gap_in_the_sequence(
                                       'missing': 10}
 
 
+def test_a_gap_keeps_the_publisher_count_of_the_moment_it_was_seen(
+    segments: SegmentStore,
+) -> None:
+    # Judged later, the publisher may be gone (it finished and left): the count that says
+    # whether the numbers are one publisher's is the one when the jump arrived.
+    matched = {'/numbers': 1}
+    rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 11))}},
+                       publishers=lambda topic: matched[topic])
+    rlog.add_many(_numbers([11, 15]))
+    matched['/numbers'] = 0
+    assert [(g.first, g.last, g.publishers) for g in rlog.gaps] == [(12, 14, 1)]
+    assert 'publishers' not in rlog.gaps[0].to_json()
+
+
 def test_the_first_message_after_the_crash_is_checked_against_the_nodes_log(
     segments: SegmentStore,
 ) -> None:

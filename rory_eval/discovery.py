@@ -58,22 +58,26 @@ rclpy.spin(n)
 def _settings() -> dict[str, dict[str, str]]:
     from rory_runtime.dds import fast_rediscovery_env
 
-    profile = fast_rediscovery_env()['FASTRTPS_DEFAULT_PROFILES_FILE']
+    profile = fast_rediscovery_env({})['FASTRTPS_DEFAULT_PROFILES_FILE']
     return {
+        # Under LOCALHOST, rmw_fastrtps keeps shared memory on in the first three whatever
+        # FASTDDS_BUILTIN_TRANSPORTS says; the last is what RORY runs (UDPv4 on 127.0.0.1).
         'default (SHM+UDPv4)': {},
         'UDPv4': {'FASTDDS_BUILTIN_TRANSPORTS': 'UDPv4'},
         'UDPv4 + fast_rediscovery.xml': {
             'FASTDDS_BUILTIN_TRANSPORTS': 'UDPv4',
             'FASTRTPS_DEFAULT_PROFILES_FILE': profile,
         },
+        'RORY: UDPv4 on 127.0.0.1 only': fast_rediscovery_env(
+            {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}),
     }
 
 
 def measure(extra: dict[str, str], runs: int, peers: int, domain: int) -> list[float]:
     """Milliseconds from publish to receipt for ``runs`` restarts under one setting."""
     env = {k: v for k, v in os.environ.items() if not k.startswith('FAST')}
-    env.update(extra)
     env.update({'ROS_DOMAIN_ID': str(domain), 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'})
+    env.update(extra)  # may replace the range (RORY's localhost profile)
     procs: list[subprocess.Popen[Any]] = []
     try:
         listener = subprocess.Popen(

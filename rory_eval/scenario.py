@@ -130,9 +130,9 @@ class ScenarioResult:
 def scenario_env(domain_id: int) -> dict[str, str]:
     """Environment for every process of one isolated run."""
     env = dict(os.environ)
-    env.update(fast_rediscovery_env())
     env['ROS_DOMAIN_ID'] = str(domain_id)
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env.update(fast_rediscovery_env(env))  # localhost reach without shared memory
     env['PYTHONUNBUFFERED'] = '1'
     return env
 

@@ -2,17 +2,33 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping
 from importlib import resources
 
 
-def fast_rediscovery_env() -> dict[str, str]:
+def fast_rediscovery_env(environ: Mapping[str, str] | None = None) -> dict[str, str]:
     """Environment for every process of a robot run under RORY (supervisor and nodes alike).
 
     UDPv4 only: after a SIGKILL, Fast DDS's shared-memory transport left the restarted process
-    unheard for a median 2.8 s here, against 54 ms over UDPv4 (FACTS.md).
+    unheard for a median 2.8 s here, against 54 ms over UDPv4 (FACTS.md), and a process killed
+    holding a shared-memory port's mutex blocks every writer to that port for seconds
+    (fast_rediscovery_localhost.xml). ``FASTDDS_BUILTIN_TRANSPORTS`` says UDPv4 - except under
+    ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, where rmw_fastrtps brings shared memory back
+    whatever the variable says; there the same reach is made with range SUBNET and a profile
+    that allows only UDPv4 on 127.0.0.1.
+
+    Args:
+        environ: The environment the processes would otherwise get (default: this process's).
     """
-    profile = resources.files(__package__).joinpath('fast_rediscovery.xml')
+    environ = os.environ if environ is None else environ
+    files = resources.files(__package__)
+    if environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', '').strip().upper() == 'LOCALHOST':
+        return {
+            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET',
+            'FASTRTPS_DEFAULT_PROFILES_FILE': str(files.joinpath('fast_rediscovery_localhost.xml')),
+        }
     return {
         'FASTDDS_BUILTIN_TRANSPORTS': 'UDPv4',
-        'FASTRTPS_DEFAULT_PROFILES_FILE': str(profile),
+        'FASTRTPS_DEFAULT_PROFILES_FILE': str(files.joinpath('fast_rediscovery.xml')),
     }

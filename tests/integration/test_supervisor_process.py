@@ -16,7 +16,7 @@ from rosbags.rosbag2 import Reader
 from supervision import events as read_events
 from supervision import wait_for
 
-from rory_eval.scenario import Kill, prepare, run, scenario_env
+from rory_eval.scenario import EXAMPLE, Kill, prepare, run, scenario_env
 
 pytestmark = pytest.mark.ros
 
@@ -177,3 +177,38 @@ def test_bad_config_exits_2_naming_file_and_field(
     assert proc.returncode == 2
     assert f'{config}: {field}:' in proc.stderr
     assert not (tmp_path / '.rory').exists(), 'a bad config must not touch the store'
+
+
+def _threads(pid: int) -> list[str]:
+    return [(task / 'comm').read_text().strip() for task in Path(f'/proc/{pid}/task').iterdir()]
+
+
+def test_under_localhost_rory_runs_no_shared_memory_and_still_hears_plain_peers(
+    tmp_path: Path, ros_domain: int, reap: list[Any]
+) -> None:
+    # A process SIGKILLed while holding a shared-memory port's mutex blocks every writer to
+    # that port (a supervisor froze for 3 s; its ring lost messages). Under LOCALHOST the
+    # supervisor and its nodes use UDPv4 on 127.0.0.1 only, and still talk to processes left
+    # at the LOCALHOST defaults (shared memory and UDPv4).
+    plain = {k: v for k, v in os.environ.items() if not k.startswith('FAST')}
+    plain.update(ROS_DOMAIN_ID=str(ros_domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    config = prepare(tmp_path, 'rory', interval=0.5, pace='fast')
+    store = tmp_path / 'store-rory'
+    sup = _supervise(config, plain)
+    reap.append(sup)
+    wait_for(
+        lambda: any(e.get('new') == 'RUNNING' for e in read_events(store)), 30, 'node RUNNING'
+    )
+    node_pid = next(e['pid'] for e in read_events(store) if e['kind'] == 'spawn')
+    # The plain publisher waits for two readers (the node's and RORY's ring), sends 50
+    # numbers and exits 0 once both acknowledged every one.
+    publisher = subprocess.Popen(
+        [sys.executable, str(EXAMPLE / 'count_publisher.py'), '50', '50', '2'], env=plain,
+        cwd=tmp_path, start_new_session=True,
+    )
+    reap.append(publisher)
+    assert publisher.wait(timeout=30) == 0
+    for pid, who in ((sup.pid, 'supervisor'), (node_pid, 'node')):
+        shm = [t for t in _threads(pid) if t.startswith('dds.shm')]
+        assert not shm, f'{who} runs Fast DDS shared memory: {shm}'
+        assert any(t.startswith('dds.udp') for t in _threads(pid)), who

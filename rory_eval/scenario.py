@@ -214,11 +214,12 @@ class _Observer:
         self.node.create_subscription(Bool, '/e_stop', self._on_e_stop, latched)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
+        self._closing = threading.Event()
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
-        while self.context.ok():
+        while not self._closing.is_set() and self.context.ok():
             with contextlib.suppress(Exception):
                 self.executor.spin_once(timeout_sec=0.05)
 
@@ -233,8 +234,13 @@ class _Observer:
         self.e_stop.append((time.monotonic(), bool(msg.data)))
 
     def close(self) -> None:
-        self.context.try_shutdown()
+        # Executor and node before the context: an executor collected after its context is
+        # gone prints "Exception ignored in Executor.__del__" at exit.
+        self._closing.set()
         self._thread.join(timeout=2.0)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
 
 
 class _Events:

@@ -161,22 +161,31 @@ def compare(reference: dict[int, bytes], crashed: dict[int, bytes],
     recovered = [e for e in events if e['kind'] == 'recovered']
     missing = 0
     if recovered and crashed:
-        # From the first output after the release to the crash run's last one, every output of
-        # the reference must be there (the stop may cut the two runs' ends differently).
-        start = _first_after_gap(sorted(crashed))
-        end = max(crashed)
-        missing = sum(1 for s in reference if start <= s <= end and s not in crashed)
+        # From the first output after the first release to the crash run's last one, every
+        # output of the reference must be there (the stop may cut the two runs' ends
+        # differently) - except inside a later outage: a strike after a release gets a
+        # recovery of its own, and a node is silent while it recovers.
+        outages = _outages(sorted(crashed), len(recovered))
+        start, end = outages[0][1], max(crashed)
+        missing = sum(1 for s in reference
+                      if start <= s <= end and s not in crashed
+                      and not any(a < s < b for a, b in outages[1:]))
     return Comparison(len(reference), len(crashed), len(common), len(identical), missing,
                       recovered[0]['total_ms'] if recovered else None,
                       '' if first is None else f'first difference at stamp {first / 1e9:.2f} s')
 
 
-def _first_after_gap(stamps: list[int]) -> int:
-    """The first stamp after the largest gap (the outage), i.e. the first after the release."""
+def _outages(stamps: list[int], recoveries: int) -> list[tuple[int, int]]:
+    """The ``recoveries`` largest gaps between outputs (the outages), in time order.
+
+    Each is (last output before, first output after); a run without a gap gives its first
+    stamp as both.
+    """
     if len(stamps) < 2:
-        return stamps[0] if stamps else 0
-    gaps = [(b - a, b) for a, b in itertools.pairwise(stamps)]
-    return max(gaps)[1]
+        first = stamps[0] if stamps else 0
+        return [(first, first)]
+    gaps = sorted(itertools.pairwise(stamps), key=lambda ab: ab[1] - ab[0], reverse=True)
+    return sorted(gaps[:max(1, recoveries)])
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -36,8 +36,6 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Bool, Int64, String
 
-from rory_runtime.dds import fast_rediscovery_env
-
 from .hosts import Host, Hosts, netns_available, stop
 from .scenario import EXAMPLE, INTEGRATOR, ScenarioResult, prepare, scenario_env
 
@@ -211,11 +209,9 @@ def run_on_hosts(
     # A fresh store and observer file: a follower must not start reading an earlier run's file.
     shutil.rmtree(store, ignore_errors=True)
     (workdir / 'observed.jsonl').unlink(missing_ok=True)
-    env = scenario_env(domain_id)
-    # Across hosts LOCALHOST would keep discovery on each host. UDPv4 only (fast_rediscovery_env
-    # for SUBNET) in every process, or shared memory would bypass the link.
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SUBNET'
-    env.update(fast_rediscovery_env(env))
+    # Across hosts LOCALHOST would keep discovery on each host. UDPv4 only (scenario_env, by
+    # fast_rediscovery_env) in every process, or shared memory would bypass the link.
+    env = scenario_env(domain_id, reach='SUBNET')
     assert env['FASTDDS_BUILTIN_TRANSPORTS'] == 'UDPv4'
     python = sys.executable
     observed = _Observed(workdir / 'observed.jsonl')

@@ -127,12 +127,18 @@ class ScenarioResult:
         return [float(r['total_ms']) for r in self.recoveries]
 
 
-def scenario_env(domain_id: int) -> dict[str, str]:
-    """Environment for every process of one isolated run."""
+def scenario_env(domain_id: int, reach: str = 'LOCALHOST') -> dict[str, str]:
+    """Environment for every process of one isolated run.
+
+    Args:
+        domain_id: Its ROS domain.
+        reach: ``ROS_AUTOMATIC_DISCOVERY_RANGE`` (SUBNET across network namespaces).
+    """
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(domain_id)
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env.update(fast_rediscovery_env(env))  # localhost reach without shared memory
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = reach
+    # UDPv4 only; under LOCALHOST that takes range SUBNET and a profile bound to 127.0.0.1.
+    env.update(fast_rediscovery_env(env))
     env['PYTHONUNBUFFERED'] = '1'
     return env
 

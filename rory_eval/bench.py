@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from .scenario import Kill, ScenarioResult, run
+from .simrun import exit_on_sigterm
 
 Config = tuple[str, str, bool]
 """(method, replay pace, warm standby)."""
@@ -66,6 +67,7 @@ def report(results: dict[Config, list[ScenarioResult]]) -> str:
 
 def main() -> None:
     """Run the benchmark."""
+    exit_on_sigterm()
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--runs', type=int, default=10)
     parser.add_argument('--kill-at', type=float, default=3.0)

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rory_eval.scenario import Kill, Program, ScenarioResult, run
+from rory_eval.simrun import exit_on_sigterm
 
 FLAKY_DIR = Path(__file__).resolve().parent / 'flaky'
 FLAKY = Program(FLAKY_DIR, FLAKY_DIR / 'keyvars.yaml', 'flaky_integrator.py',
@@ -150,6 +151,7 @@ def table(outcomes: Sequence[Outcome]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the campaign; exit 1 unless every run recovered exactly."""
+    exit_on_sigterm()
     parser = argparse.ArgumentParser(prog='python -m rory_eval.fault_campaign',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -53,6 +53,22 @@ LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
 """Reliable, transient local, depth 1: what /goal_pose, /e_stop and maps are sent with."""
 
 
+def exit_on_sigterm() -> None:
+    """Make SIGTERM end this process as Ctrl-C does, through its ``finally`` blocks.
+
+    The processes a run spawns are in sessions of their own (a Ctrl-C at the terminal must not
+    strike the node under test behind RORY's back), so they outlive a harness that dies of a
+    plain SIGTERM: ``pkill -f target_faults`` left a supervisor, a node and the simulator
+    running on the campaign's domain. Raising SystemExit instead lets ``SimRun.run`` reap them.
+    Call it from a program's ``main`` (signal handlers belong to the main thread).
+    """
+    def stop(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, stop)
+
+
 def store_events(store: Path) -> list[dict[str, Any]]:
     """The records of a supervisor's ``<store>/events.jsonl`` so far (none before it exists).
 

@@ -25,7 +25,7 @@ from typing import Any
 import yaml
 
 from rory_eval.evaluation.runner import Killer
-from rory_eval.simrun import REPO, SimRun
+from rory_eval.simrun import REPO, SimRun, exit_on_sigterm
 
 
 @dataclass(frozen=True)
@@ -190,6 +190,7 @@ def _outages(stamps: list[int], recoveries: int) -> list[tuple[int, int]]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run both, print the comparison; exit 0 when exact."""
+    exit_on_sigterm()
     parser = argparse.ArgumentParser(prog='python -m rory_eval.target_crash',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -39,7 +40,7 @@ from typing import Any
 import yaml
 
 from rory_eval.flaky.inject import HANG_FLAG, RAISE_FLAG
-from rory_eval.simrun import REPO, SimRun, store_events, wait_for_clock
+from rory_eval.simrun import REPO, SimRun, exit_on_sigterm, store_events, wait_for_clock
 from rory_eval.target_crash import TARGETS, Comparison, Target, compare
 
 FAULTS = ('SIGKILL', 'SIGSEGV', 'raise', 'hang')
@@ -181,6 +182,12 @@ def run_target(target: Target, world: str, out: Path, *, domain_id: int,
                         str(source / 'keyvars.yaml'), '-o', str(inst)], check=True,
                        capture_output=True)
     store = out / 'store'
+    # A store left by an earlier campaign in the same folder would be recovered from (that is
+    # what a store is for): every run starts from none.
+    for old in (store, out / 'run'):
+        shutil.rmtree(old, ignore_errors=True)
+    for flag in (RAISE_FLAG, HANG_FLAG):
+        (out / flag).unlink(missing_ok=True)
     config = out / 'supervise.yaml'
     command = ['python', '-m', 'rory_eval.flaky.inject', str(inst / target.node_file),
                *target.argv(world)[2:]]
@@ -225,12 +232,41 @@ def run_case(case: Case, reference: dict[int, bytes], out: Path, *, domain_id: i
     except Exception as err:  # the run failed to run: reported in the table
         return Outcome(case, None, error=f'{type(err).__name__}: {err}')
     assert striker is not None
+    comparison = compare(reference, crashed, events)
+    if not comparison.exact:
+        write_differences(reference, crashed, TARGETS[case.target], out / 'differences.txt')
     return Outcome(
-        case, compare(reference, crashed, events), strikes=striker.strikes,
+        case, comparison, strikes=striker.strikes,
         recoveries=sum(e['kind'] == 'recovered' for e in events),
         input_gaps=sum(int(e['missing']) for e in events if e['kind'] == 'input_gap'),
         gave_up=any(e['kind'] == 'state' and e.get('new') == 'FATAL' for e in events),
         error=striker.error)
+
+
+def write_differences(reference: dict[int, bytes], crashed: dict[int, bytes], target: Target,
+                      path: Path) -> None:
+    """Every stamp whose output differs or is missing, both sides decoded: the evidence a wrong
+    run leaves beside its store and logs (``run/supervisor.log`` has the node's output)."""
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from rclpy.serialization import deserialize_message
+
+    msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped
+
+    def pose(raw: bytes | None) -> str:
+        if raw is None:
+            return 'absent'
+        msg = deserialize_message(raw, msg_type)
+        p = msg.pose.position if target.pose_type == 'PoseStamped' else msg.pose.pose.position
+        q = (msg.pose.orientation if target.pose_type == 'PoseStamped'
+             else msg.pose.pose.orientation)
+        return f'x={p.x:.6f} y={p.y:.6f} qz={q.z:.6f} qw={q.w:.6f}'
+
+    lines = ['stamp_s | reference | crashed']
+    for stamp in sorted(set(reference) | set(crashed)):
+        ref, got = reference.get(stamp), crashed.get(stamp)
+        if ref != got:
+            lines.append(f'{stamp / 1e9:.3f} | {pose(ref)} | {pose(got)}')
+    path.write_text('\n'.join(lines) + '\n')
 
 
 @dataclass
@@ -284,10 +320,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--out', type=Path, default=Path('faults-out'))
     parser.add_argument('--only', choices=('single', 'double'),
                         help='only the single-strike or only the double-strike cases')
+    parser.add_argument('--strike', nargs=2, metavar=('FAULT', 'AT'),
+                        help='instead of the seeded plan: this fault at AT sim seconds, on each '
+                             'target x world')
+    parser.add_argument('--then', nargs=2, metavar=('FAULT', 'AFTER'),
+                        help='with --strike: a second fault AFTER seconds after the respawn')
+    parser.add_argument('--repeat', type=int, default=1, metavar='N',
+                        help='run each case N times (to chase a rare wrong run)')
     args = parser.parse_args(argv)
-    cases = plan(args.targets, args.worlds, args.seed)
+    if args.then is not None and args.strike is None:
+        parser.error('--then needs --strike')
+    for given in (args.strike, args.then):
+        if given is not None and given[0] not in FAULTS:
+            parser.error(f'unknown fault {given[0]!r}; one of {", ".join(FAULTS)}')
+    if args.strike is not None:
+        second = None if args.then is None else (args.then[0], float(args.then[1]))
+        cases = [Case(t, w, args.strike[0], float(args.strike[1]), second)
+                 for t in args.targets for w in args.worlds]
+    else:
+        cases = plan(args.targets, args.worlds, args.seed)
     if args.only is not None:
         cases = [c for c in cases if (c.second is None) == (args.only == 'single')]
+    cases = [c for c in cases for _ in range(max(1, args.repeat))]
+    exit_on_sigterm()
     started = time.monotonic()
     outcomes: list[Outcome] = []
     references: dict[tuple[str, str], dict[int, bytes]] = {}

@@ -1,0 +1,45 @@
+"""What ``target_faults`` leaves behind for a wrong run, and its explicit cases."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.serialization import serialize_message
+
+from rory_eval import target_faults
+from rory_eval.target_crash import TARGETS
+
+
+def _pose(stamp_ns: int, x: float) -> bytes:
+    msg = PoseWithCovarianceStamped()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+    msg.pose.pose.position.x = x
+    msg.pose.pose.orientation.w = 1.0
+    return bytes(serialize_message(msg))
+
+
+def test_differences_list_only_the_stamps_that_differ_or_are_absent(tmp_path: Path) -> None:
+    reference = {1_000_000_000: _pose(1_000_000_000, 1.0),
+                 1_100_000_000: _pose(1_100_000_000, 2.0),
+                 1_200_000_000: _pose(1_200_000_000, 3.0)}
+    crashed = {1_000_000_000: reference[1_000_000_000],
+               1_100_000_000: _pose(1_100_000_000, 2.5)}
+    path = tmp_path / 'differences.txt'
+    target_faults.write_differences(reference, crashed, TARGETS['amcl'], path)
+    lines = path.read_text().splitlines()
+    assert lines[1:] == [
+        '1.100 | x=2.000000 y=0.000000 qz=0.000000 qw=1.000000 | '
+        'x=2.500000 y=0.000000 qz=0.000000 qw=1.000000',
+        '1.200 | x=3.000000 y=0.000000 qz=0.000000 qw=1.000000 | absent',
+    ]
+
+
+def test_then_needs_a_strike_and_faults_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        target_faults.main(['--then', 'raise', '0.5'])
+    assert '--then needs --strike' in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        target_faults.main(['--strike', 'SIGFOO', '3'])
+    assert "unknown fault 'SIGFOO'" in capsys.readouterr().err

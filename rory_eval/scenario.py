@@ -143,6 +143,28 @@ def scenario_env(domain_id: int, reach: str = 'LOCALHOST') -> dict[str, str]:
     return env
 
 
+@contextlib.contextmanager
+def joining(domain_id: int) -> Iterator[None]:
+    """While this process creates its own participant in a run's domain: the run's discovery
+    settings (``FAST*``, ``ROS_*`` of :func:`scenario_env`) in ``os.environ``, where rmw and
+    Fast DDS read them; the environment as it was afterwards.
+
+    Restoring matters in a long-lived process (a pytest worker, a campaign): the next run's
+    children are spawned from ``os.environ`` and must not inherit this one's domain.
+    """
+    joined = {k: v for k, v in scenario_env(domain_id).items() if k.startswith(('FAST', 'ROS_'))}
+    before = {k: os.environ.get(k) for k in joined}
+    os.environ.update(joined)
+    try:
+        yield
+    finally:
+        for key, value in before.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
 def prepare(
     workdir: Path,
     method: str,
@@ -312,8 +334,8 @@ def run(
         shutil.rmtree(store)
     env = scenario_env(domain_id)
     # This process joins the run too (the observer): same discovery settings as the others.
-    os.environ.update({k: v for k, v in env.items() if k.startswith(('FAST', 'ROS_'))})
-    observer = _Observer(domain_id, program.state_topic)
+    with joining(domain_id):
+        observer = _Observer(domain_id, program.state_topic)
     events = _Events(store / 'events.jsonl')
     tracker = _Tracker()
     kills_done: list[tuple[str, float]] = []

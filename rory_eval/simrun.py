@@ -42,7 +42,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from rory_eval.scenario import scenario_env
+from rory_eval.scenario import joining, scenario_env
 
 REPO = Path(__file__).resolve().parent.parent
 _CLK_TCK = os.sysconf('SC_CLK_TCK')
@@ -326,13 +326,12 @@ class _Recorder:
     def __init__(self, domain_id: int, recordings: Any, latched: list[tuple[str, Any]],
                  once: list[tuple[str, Any, int]]) -> None:
         # This process joins the run: the same discovery settings as the others.
-        env = scenario_env(domain_id)
-        os.environ.update({k: v for k, v in env.items() if k.startswith(('FAST', 'ROS_'))})
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id,
-                   signal_handler_options=SignalHandlerOptions.NO)
-        # Unique: runs side by side in one process (rory_eval.fleet) each have a recorder.
-        self.node = Node(f'simrun_recorder_{next(_RECORDERS)}', context=self.context)
+        with joining(domain_id):
+            rclpy.init(context=self.context, domain_id=domain_id,
+                       signal_handler_options=SignalHandlerOptions.NO)
+            # Unique: runs side by side in one process (rory_eval.fleet) each have a recorder.
+            self.node = Node(f'simrun_recorder_{next(_RECORDERS)}', context=self.context)
         self._lock = threading.Lock()
         for rec in recordings:
             self.node.create_subscription(rec.msg_type, rec.topic, self._callback(rec), rec.qos)

@@ -20,6 +20,7 @@ from rory_eval.scenario import (
     _Observer,
     _Tracker,
     child_process,
+    joining,
     prepare,
     scenario_env,
 )
@@ -56,8 +57,8 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
     config = prepare(workdir, 'rory', interval=1.0, pace='fast')
     store = workdir / 'store-rory'
     env = scenario_env(ros_domain)
-    os.environ.update({k: v for k, v in env.items() if k.startswith(('FAST', 'ROS_'))})
-    observer = _Observer(ros_domain)
+    with joining(ros_domain):
+        observer = _Observer(ros_domain)
     events = _Events(store / 'events.jsonl')
     tracker = _Tracker()
     publisher = [sys.executable, str(EXAMPLE / 'count_publisher.py')]

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.scenario import EXAMPLE, _Observer, scenario_env
+from rory_eval.scenario import EXAMPLE, _Observer, joining, scenario_env
 
 pytestmark = pytest.mark.ros
 
@@ -20,8 +20,8 @@ COUNT = 100
 def _run_alone(program: Path, domain: int, tmp_path: Path) -> dict[str, object]:
     env = scenario_env(domain)
     env.pop('RORY_NODE', None)
-    os.environ.update({k: v for k, v in env.items() if k.startswith(('FAST', 'ROS_'))})
-    observer = _Observer(domain)
+    with joining(domain):
+        observer = _Observer(domain)
     node = subprocess.Popen([sys.executable, str(program)], env=env, cwd=tmp_path)
     try:
         subprocess.run(

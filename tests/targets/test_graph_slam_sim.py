@@ -22,7 +22,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 
 from rory_eval.metrics import grid_from_msg, map_score, position_errors
-from rory_eval.scenario import scenario_env
+from rory_eval.scenario import joining, scenario_env
 from rory_eval.simrun import LATCHED, REPO, SimRun
 from sim.maps import ground_truth_map
 from sim.sensors import LIDAR
@@ -112,12 +112,11 @@ class Feeder:
         from rclpy.node import Node
         from rclpy.signals import SignalHandlerOptions
 
-        os.environ.update({k: v for k, v in scenario_env(domain).items()
-                           if k.startswith(('FAST', 'ROS_'))})
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain,
-                   signal_handler_options=SignalHandlerOptions.NO)
-        self.node = Node('graph_slam_test_feeder', context=self.context)
+        with joining(domain):
+            rclpy.init(context=self.context, domain_id=domain,
+                       signal_handler_options=SignalHandlerOptions.NO)
+            self.node = Node('graph_slam_test_feeder', context=self.context)
         reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         self.scan_publisher = self.node.create_publisher(LaserScan, '/scan', reliable)
         self.odom_publisher = self.node.create_publisher(Odometry, '/odom', reliable)

@@ -19,7 +19,7 @@ from nav_msgs.msg import OccupancyGrid
 from sensor_msgs.msg import LaserScan
 
 from rory_eval.metrics import grid_from_msg, map_score, position_errors
-from rory_eval.scenario import scenario_env
+from rory_eval.scenario import joining, scenario_env
 from rory_eval.simrun import LATCHED, REPO, SimRun
 from sim.maps import ground_truth_map
 from sim.sensors import LIDAR
@@ -90,12 +90,11 @@ class ScanFeeder:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from rclpy.signals import SignalHandlerOptions
 
-        os.environ.update({k: v for k, v in scenario_env(domain).items()
-                           if k.startswith(('FAST', 'ROS_'))})
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain,
-                   signal_handler_options=SignalHandlerOptions.NO)
-        self.node = Node('grid_slam_test_feeder', context=self.context)
+        with joining(domain):
+            rclpy.init(context=self.context, domain_id=domain,
+                       signal_handler_options=SignalHandlerOptions.NO)
+            self.node = Node('grid_slam_test_feeder', context=self.context)
         self.scan_publisher = self.node.create_publisher(
             LaserScan, '/scan', QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
         self.poses: list[PoseStamped] = []

@@ -38,6 +38,7 @@ class Target:
     pose_type: str  # 'PoseStamped' or 'PoseWithCovarianceStamped'
     argv: Callable[[str], list[str]]  # world -> the node's command line (original script)
     depth: bool = False  # needs the depth camera
+    inputs: tuple[str, ...] = ('/scan', '/odom')  # the sensor topics the clock waits for
 
 
 def _grid_slam(world: str) -> list[str]:
@@ -72,15 +73,25 @@ def _lama(world: str) -> list[str]:
 
 TARGETS = {
     'grid_slam': Target('grid_slam', 'grid_slam_node.py', '/grid_slam/pose', 'PoseStamped',
-                        _grid_slam),
+                        _grid_slam, inputs=('/scan',)),
     'graph_slam': Target('graph_slam', 'graph_slam_node.py', '/graph_slam/pose', 'PoseStamped',
                          _graph_slam),
     'depth_mapper': Target('depth_mapper', 'depth_mapper_node.py', '/depth_mapper/pose',
-                           'PoseStamped', _depth_mapper, depth=True),
+                           'PoseStamped', _depth_mapper, depth=True,
+                           inputs=('/camera/depth/points', '/odom')),
     'amcl': Target('amcl', 'amcl_node.py', '/amcl_pose', 'PoseWithCovarianceStamped', _amcl),
     'lama_local': Target('lama_local', 'lama_local_node.py', '/lama_local/pose',
                          'PoseWithCovarianceStamped', _lama),
 }
+
+
+def sensor_readers(target: Target) -> dict[str, int]:
+    """What the simulator's clock waits for: the node and RORY's ring on each input.
+
+    Waiting for a topic the target does not read (depth_mapper has no /scan) only times out:
+    30 s per run, and the start then races the subscriptions.
+    """
+    return {topic: 2 for topic in target.inputs}
 
 
 @dataclass
@@ -125,11 +136,11 @@ def run_under_rory(target: Target, world: str, out: Path, *, domain_id: int, dur
                    'checkpoint_interval': 2.0, 'replay': 'fast'}],
         'store': str(store),
     }))
-    # The clock waits for the node and RORY's ring to subscribe /scan, then one more second
-    # so the latched map reaches the node before the first scan in every run: otherwise the
-    # interleaving of map and scans at start-up differs between runs, and so do the outputs.
+    # The clock waits for the node and RORY's ring to subscribe its inputs, then one more
+    # second so the latched map reaches the node before the first scan in every run: otherwise
+    # the interleaving of map and scans at start-up differs between runs, and so do the outputs.
     run = SimRun(world, out / 'run', domain_id=domain_id, duration=duration, depth=target.depth,
-                 wait_for={'/scan': 2}, sim_args=['--start-delay', '1.0'])
+                 wait_for=sensor_readers(target), sim_args=['--start-delay', '1.0'])
     run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
                                 str(config)])
     msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped

@@ -23,6 +23,7 @@ or localizer), input messages reported lost (``input_gap``), give-ups.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import random
 import shutil
@@ -41,7 +42,7 @@ import yaml
 
 from rory_eval.flaky.inject import HANG_FLAG, RAISE_FLAG
 from rory_eval.simrun import REPO, SimRun, exit_on_sigterm, store_events, wait_for_clock
-from rory_eval.target_crash import TARGETS, Comparison, Target, compare
+from rory_eval.target_crash import TARGETS, Comparison, Target, compare, sensor_readers
 
 FAULTS = ('SIGKILL', 'SIGSEGV', 'raise', 'hang')
 WORLDS = ('office_small', 'workshop', 'real_room')
@@ -201,7 +202,7 @@ def run_target(target: Target, world: str, out: Path, *, domain_id: int,
         'store': str(store),
     }))
     run = SimRun(world, out / 'run', domain_id=domain_id, duration=duration, depth=target.depth,
-                 wait_for={'/scan': 2}, sim_args=['--start-delay', '1.0'])
+                 wait_for=sensor_readers(target), sim_args=['--start-delay', '1.0'])
     run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
                                 str(config)])
     msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped
@@ -243,30 +244,50 @@ def run_case(case: Case, reference: dict[int, bytes], out: Path, *, domain_id: i
         error=striker.error)
 
 
+def _flatten(msg: Any, prefix: str = '') -> dict[str, Any]:
+    """A message's leaf fields by dotted path (arrays indexed), for a field-by-field diff."""
+    fields = getattr(msg, 'get_fields_and_field_types', None)
+    if fields is None:
+        if isinstance(msg, (list, tuple)) or hasattr(msg, 'tolist'):
+            items = msg.tolist() if hasattr(msg, 'tolist') else list(msg)
+            out: dict[str, Any] = {}
+            for k, item in enumerate(items):
+                out.update(_flatten(item, f'{prefix}[{k}]'))
+            return out
+        return {prefix: msg}
+    out = {}
+    for name in fields():
+        out.update(_flatten(getattr(msg, name), f'{prefix}.{name}' if prefix else name))
+    return out
+
+
 def write_differences(reference: dict[int, bytes], crashed: dict[int, bytes], target: Target,
                       path: Path) -> None:
-    """Every stamp whose output differs or is missing, both sides decoded: the evidence a wrong
-    run leaves beside its store and logs (``run/supervisor.log`` has the node's output)."""
+    """The evidence a wrong run leaves beside its store and logs (``run/supervisor.log`` has the
+    node's output): per stamp whose output differs or is missing, the fields that differ with
+    both values at full precision; and both runs' outputs as CDR (hex) in ``outputs.json``."""
     from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
     from rclpy.serialization import deserialize_message
 
     msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped
-
-    def pose(raw: bytes | None) -> str:
-        if raw is None:
-            return 'absent'
-        msg = deserialize_message(raw, msg_type)
-        p = msg.pose.position if target.pose_type == 'PoseStamped' else msg.pose.pose.position
-        q = (msg.pose.orientation if target.pose_type == 'PoseStamped'
-             else msg.pose.pose.orientation)
-        return f'x={p.x:.6f} y={p.y:.6f} qz={q.z:.6f} qw={q.w:.6f}'
-
-    lines = ['stamp_s | reference | crashed']
+    lines = ['stamp_s | field: reference -> crashed']
     for stamp in sorted(set(reference) | set(crashed)):
         ref, got = reference.get(stamp), crashed.get(stamp)
-        if ref != got:
-            lines.append(f'{stamp / 1e9:.3f} | {pose(ref)} | {pose(got)}')
+        if ref == got:
+            continue
+        if ref is None or got is None:
+            lines.append(f'{stamp / 1e9:.3f} | {"reference" if ref is None else "crashed"} '
+                         'has none')
+            continue
+        a = _flatten(deserialize_message(ref, msg_type))
+        b = _flatten(deserialize_message(got, msg_type))
+        changed = [f'{k}: {a.get(k)!r} -> {b.get(k)!r}' for k in a if a.get(k) != b.get(k)]
+        lines.append(f'{stamp / 1e9:.3f} | ' + ('; '.join(changed) or 'bytes differ, fields equal'))
     path.write_text('\n'.join(lines) + '\n')
+    (path.parent / 'outputs.json').write_text(json.dumps({
+        'reference': {str(k): v.hex() for k, v in sorted(reference.items())},
+        'crashed': {str(k): v.hex() for k, v in sorted(crashed.items())},
+    }))
 
 
 @dataclass

@@ -243,6 +243,11 @@ class DepthMapper:
         if stamp_ns <= previous[0]:
             return previous[1:]
         for sample in self.odometry:
+            if sample[0] == stamp_ns:
+                # As it is, the same pose as when it was the newest: through interpolate()
+                # (fraction 1, wrapped yaw) its last bits would change, and the frame's result
+                # would depend on whether later odometry had arrived before it.
+                return sample[1:]
             if sample[0] >= stamp_ns:
                 fraction = (stamp_ns - previous[0]) / (sample[0] - previous[0])
                 p = interpolate(np.array(previous[1:]), np.array(sample[1:]), fraction)

@@ -60,6 +60,12 @@ def odometry_at(history: deque[OdometrySample] | Sequence[OdometrySample],
     # Walk back from the newest: the stamp asked for is almost always among the last few.
     for k in range(len(history) - 2, -1, -1):
         before = history[k]
+        if before[0] == stamp_ns:
+            # A sample at the very stamp, as it is: the same pose as when it was the newest.
+            # Interpolated at f = 0 it would pass through wrap_angle, which changes the last
+            # bits of most angles, and the result would depend on whether later odometry had
+            # arrived before the scan (it varies with delivery timing, and did in a handover).
+            return before[1:]
         if before[0] <= stamp_ns:
             after = history[k + 1]
             span = after[0] - before[0]

@@ -64,6 +64,10 @@ class PoseTracker:
         # Localization is at most a few samples behind: search from the newest end.
         for k in range(len(history) - 1, 0, -1):
             t0, x0, y0, a0 = history[k - 1]
+            if t0 == stamp_ns:
+                # As it is: interpolated at fraction 0 the wrapped yaw would change its last
+                # bits, and the result would depend on whether later odometry had arrived.
+                return Pose2D(x0, y0, a0)
             if t0 <= stamp_ns:
                 t1, x1, y1, a1 = history[k]
                 fraction = (stamp_ns - t0) / (t1 - t0) if t1 > t0 else 1.0

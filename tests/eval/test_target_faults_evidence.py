@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -30,10 +31,12 @@ def test_differences_list_only_the_stamps_that_differ_or_are_absent(tmp_path: Pa
     target_faults.write_differences(reference, crashed, TARGETS['amcl'], path)
     lines = path.read_text().splitlines()
     assert lines[1:] == [
-        '1.100 | x=2.000000 y=0.000000 qz=0.000000 qw=1.000000 | '
-        'x=2.500000 y=0.000000 qz=0.000000 qw=1.000000',
-        '1.200 | x=3.000000 y=0.000000 qz=0.000000 qw=1.000000 | absent',
+        '1.100 | pose.pose.position.x: 2.0 -> 2.5',
+        '1.200 | crashed has none',
     ]
+    saved = json.loads((tmp_path / 'outputs.json').read_text())
+    assert bytes.fromhex(saved['reference']['1200000000']) == reference[1_200_000_000]
+    assert set(saved['crashed']) == {'1000000000', '1100000000'}
 
 
 def test_then_needs_a_strike_and_faults_are_checked(capsys: pytest.CaptureFixture[str]) -> None:

@@ -347,3 +347,13 @@ def test_same_seed_same_run() -> None:
     a = list(feed(make_localizer('real_room', seed=3), stream.events))
     b = list(feed(make_localizer('real_room', seed=3), stream.events))
     assert a == b
+
+
+def test_odometry_at_a_sample_stamp_does_not_depend_on_later_odometry() -> None:
+    # A scan is used with the odometry at its stamp, whether that sample was the newest when the
+    # scan arrived or later ones had come too (delivery order varies). wrap_angle changes the
+    # last bits of most angles, so the sample must come back as it is, not interpolated at 0.
+    history = [(k * 20, 0.1 * k + 0.013, 0.2 * k, 1.29 + 0.0137 * k) for k in range(8)]
+    for k in range(7):
+        assert odometry_at(history, k * 20) == odometry_at(history[:k + 1], k * 20)
+        assert odometry_at(history, k * 20) == history[k][1:]

@@ -444,3 +444,17 @@ def test_a_loop_fit_pins_the_pose_only_if_every_direction_is_constrained() -> No
     loose = np.diag([1.0 / 0.05**2, 1.0 / 0.01**2, 1.0 / 0.0005**2])
     assert not pins_pose(loose, 0.02)
     assert not pins_pose(np.full((3, 3), np.nan), 0.02)
+
+
+def test_odometry_at_a_sample_stamp_does_not_depend_on_later_odometry() -> None:
+    # A frame is tracked from the odometry at its stamp, whether that sample was the newest
+    # when the frame came or later ones had come too (delivery order varies).
+    samples = [(k * 20, 0.1 * k + 0.013, 0.2 * k, 1.29 + 0.0137 * k) for k in range(8)]
+    for k in range(7):
+        early = DepthMapper(MapperSettings(), np.zeros(3))
+        late = DepthMapper(MapperSettings(), np.zeros(3))
+        for sample in samples[:k + 1]:
+            early.odometry.append(sample)
+        for sample in samples:
+            late.odometry.append(sample)
+        assert late._odometry_at(k * 20) == early._odometry_at(k * 20) == samples[k][1:]

@@ -261,3 +261,14 @@ def test_keyvars_restore_the_localizer_exactly() -> None:
     fresh = LamaLocalizer(LamaConfig(), (3.0, 2.0, 1.0), START_COV)
     fresh.set_map(world_grid('real_room'))
     assert [e.pose for e in feed(fresh, stream.events[cut:])] != after_original
+
+
+def test_odometry_at_a_sample_stamp_does_not_depend_on_later_odometry() -> None:
+    from lama_local_geometry import odometry_at
+
+    # Same pose whether the sample was the newest when the scan came or later ones had come
+    # too: wrap_angle would change the last bits of an interpolated (f = 0) yaw.
+    history = [(k * 20, 0.1 * k + 0.013, 0.2 * k, 1.29 + 0.0137 * k) for k in range(8)]
+    for k in range(7):
+        assert odometry_at(history, k * 20) == odometry_at(history[:k + 1], k * 20)
+        assert odometry_at(history, k * 20) == history[k][1:]

@@ -356,3 +356,14 @@ def test_node_logs_core_notes_of_every_severity_from_one_place(ros_domain: int) 
         node.destroy_node()
     finally:
         context.try_shutdown()
+
+
+def test_odometry_at_a_sample_stamp_does_not_depend_on_later_odometry() -> None:
+    samples = [(k * 20, Pose2D(0.1 * k + 0.013, 0.2 * k, 1.29 + 0.0137 * k)) for k in range(8)]
+    for k in range(7):
+        early, late = PoseTracker(), PoseTracker()
+        for stamp, pose in samples[:k + 1]:
+            early.add_odometry(stamp, pose)
+        for stamp, pose in samples:
+            late.add_odometry(stamp, pose)
+        assert late.odom_at(k * 20) == early.odom_at(k * 20) == samples[k][1]

@@ -24,6 +24,7 @@ from typing import Any
 
 import yaml
 
+from rory_eval.evaluation.plan import TARGETS as EVAL_TARGETS
 from rory_eval.evaluation.runner import Killer
 from rory_eval.simrun import REPO, SimRun, exit_on_sigterm
 
@@ -38,7 +39,6 @@ class Target:
     pose_type: str  # 'PoseStamped' or 'PoseWithCovarianceStamped'
     argv: Callable[[str], list[str]]  # world -> the node's command line (original script)
     depth: bool = False  # needs the depth camera
-    inputs: tuple[str, ...] = ('/scan', '/odom')  # the sensor topics the clock waits for
 
 
 def _grid_slam(world: str) -> list[str]:
@@ -73,12 +73,11 @@ def _lama(world: str) -> list[str]:
 
 TARGETS = {
     'grid_slam': Target('grid_slam', 'grid_slam_node.py', '/grid_slam/pose', 'PoseStamped',
-                        _grid_slam, inputs=('/scan',)),
+                        _grid_slam),
     'graph_slam': Target('graph_slam', 'graph_slam_node.py', '/graph_slam/pose', 'PoseStamped',
                          _graph_slam),
     'depth_mapper': Target('depth_mapper', 'depth_mapper_node.py', '/depth_mapper/pose',
-                           'PoseStamped', _depth_mapper, depth=True,
-                           inputs=('/camera/depth/points', '/odom')),
+                           'PoseStamped', _depth_mapper, depth=True),
     'amcl': Target('amcl', 'amcl_node.py', '/amcl_pose', 'PoseWithCovarianceStamped', _amcl),
     'lama_local': Target('lama_local', 'lama_local_node.py', '/lama_local/pose',
                          'PoseWithCovarianceStamped', _lama),
@@ -91,7 +90,7 @@ def sensor_readers(target: Target) -> dict[str, int]:
     Waiting for a topic the target does not read (depth_mapper has no /scan) only times out:
     30 s per run, and the start then races the subscriptions.
     """
-    return {topic: 2 for topic in target.inputs}
+    return {topic: 2 for topic in EVAL_TARGETS[target.name].inputs}
 
 
 @dataclass

@@ -329,6 +329,14 @@ def table(outcomes: Sequence[Outcome]) -> str:
     return '\n'.join(lines + ([''] + [f'- {n}' for n in notes] if notes else []))
 
 
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        msg = f'{value} is not 1 or more'
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the campaign; print the table; exit 0 when every run was correct."""
     parser = argparse.ArgumentParser(prog='python -m rory_eval.target_faults',
@@ -346,7 +354,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                              'target x world')
     parser.add_argument('--then', nargs=2, metavar=('FAULT', 'AFTER'),
                         help='with --strike: a second fault AFTER seconds after the respawn')
-    parser.add_argument('--repeat', type=int, default=1, metavar='N',
+    parser.add_argument('--repeat', type=_positive_int, default=1, metavar='N',
                         help='run each case N times (to chase a rare wrong run)')
     args = parser.parse_args(argv)
     if args.then is not None and args.strike is None:
@@ -354,15 +362,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     for given in (args.strike, args.then):
         if given is not None and given[0] not in FAULTS:
             parser.error(f'unknown fault {given[0]!r}; one of {", ".join(FAULTS)}')
+    times = {}
+    for option, given in (('--strike', args.strike), ('--then', args.then)):
+        if given is not None:
+            try:
+                times[option] = float(given[1])
+            except ValueError:
+                parser.error(f'{option} {given[0]} {given[1]}: {given[1]!r} is not seconds')
+            if not times[option] >= 0.0:
+                parser.error(f'{option} {given[0]} {given[1]}: seconds must be 0 or more')
     if args.strike is not None:
-        second = None if args.then is None else (args.then[0], float(args.then[1]))
-        cases = [Case(t, w, args.strike[0], float(args.strike[1]), second)
+        second = None if args.then is None else (args.then[0], times['--then'])
+        cases = [Case(t, w, args.strike[0], times['--strike'], second)
                  for t in args.targets for w in args.worlds]
     else:
         cases = plan(args.targets, args.worlds, args.seed)
     if args.only is not None:
         cases = [c for c in cases if (c.second is None) == (args.only == 'single')]
-    cases = [c for c in cases for _ in range(max(1, args.repeat))]
+    cases = [c for c in cases for _ in range(args.repeat)]
     exit_on_sigterm()
     started = time.monotonic()
     outcomes: list[Outcome] = []

@@ -46,3 +46,22 @@ def test_then_needs_a_strike_and_faults_are_checked(capsys: pytest.CaptureFixtur
     with pytest.raises(SystemExit):
         target_faults.main(['--strike', 'SIGFOO', '3'])
     assert "unknown fault 'SIGFOO'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(('argv', 'said'), [
+    (['--strike', 'hang', 'soon'], "--strike hang soon: 'soon' is not seconds"),
+    (['--strike', 'hang', '3', '--then', 'raise', '-1'], 'seconds must be 0 or more'),
+    (['--repeat', '0'], '0 is not 1 or more'),
+])
+def test_bad_case_options_are_refused_by_name(argv: list[str], said: str,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        target_faults.main(argv)
+    assert said in capsys.readouterr().err
+
+
+def test_the_clock_waits_for_each_targets_own_inputs() -> None:
+    from rory_eval.target_crash import sensor_readers
+
+    assert sensor_readers(TARGETS['depth_mapper']) == {'/camera/depth/points': 2, '/odom': 2}
+    assert sensor_readers(TARGETS['grid_slam']) == {'/scan': 2}

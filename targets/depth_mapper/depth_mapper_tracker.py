@@ -319,8 +319,10 @@ class DepthMapper:
                                                          odom, *cloud))
         if tracked:
             self.counters['tracked'] += 1
+        # A loop closure that moved the keyframes moved this pose too: the turn since the last
+        # frame then holds the loop's correction, which is not the odometry's error.
         if yaw_observed and self.yaw_observed and odom is not None and (
-                self.odom_at_pose is not None):
+                self.odom_at_pose is not None) and loop is not LoopClosure.MOVED:
             delta = between(np.array(self.odom_at_pose), np.array(odom))
             self.calibration.observe(float(delta[2]), float(delta[0]),
                                      wrap(float(pose[2]) - float(self.pose[2])))

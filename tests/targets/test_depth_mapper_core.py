@@ -253,6 +253,26 @@ def test_calibration_learns_the_odometry_heading_error() -> None:
     assert cal.corrected_yaw(0.204, 0.0) == pytest.approx(0.2, abs=0.001)
 
 
+
+def test_a_loop_closure_that_moves_the_keyframes_does_not_teach_the_calibration(
+        real_room: Recording, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The frame of such a closure is moved by the graph solve: its turn since the frame
+    # before holds the loop's correction, which is not an error of the odometry.
+    mapper = new_mapper('real_room')
+    taught: list[int] = []
+    observe = mapper.calibration.observe
+
+    def spy(odom_yaw: float, odom_distance: float, true_yaw: float) -> None:
+        taught.append(mapper.counters['frames'])
+        observe(odom_yaw, odom_distance, true_yaw)
+
+    monkeypatch.setattr(mapper.calibration, 'observe', spy)
+    results = feed(mapper, real_room.messages)
+    moved = [n for n, r in enumerate(results, start=1) if r.loop is LoopClosure.MOVED]
+    assert moved and taught
+    assert not set(moved) & set(taught)
+
+
 def test_icp_recovers_an_offset_and_leaves_what_a_wall_cannot_tell_to_the_prior(
         real_room: Recording) -> None:
     # A real frame, its model built at the true pose; then aligned from a wrong start.

@@ -52,6 +52,7 @@ from typing import Any, TypeVar, cast
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.serialization import deserialize_message
@@ -85,6 +86,7 @@ from .protocol import (
 from .qos import offered_qos
 from .state import CheckpointSpec, read_state, write_state
 from .store import Checkpoint, CheckpointStore
+from .threads import name_this_thread
 
 _logger = logging.getLogger('rory.runtime')
 
@@ -92,6 +94,19 @@ N = TypeVar('N', bound=type[Node])
 
 DEFAULT_INTERVAL = 2.0
 BEAT_PERIOD = 0.2  # seconds between heartbeats (the supervisor's hang_timeout is far longer)
+
+
+# RORY's own status publisher and shadow subscription take no QoS event handlers: rclpy gives
+# each entity default ones (incompatible QoS and type warnings), every one a waitable that each
+# executor wait of the node's own callbacks must add and poll. Both ends are RORY's, with QoS
+# from protocol.py, so the warnings could only ever be about RORY itself.
+def _without_events_pub() -> PublisherEventCallbacks:
+    return PublisherEventCallbacks(use_default_callbacks=False)
+
+
+def _without_events_sub() -> SubscriptionEventCallbacks:
+    return SubscriptionEventCallbacks(use_default_callbacks=False)
+
 
 SWITCH_CONFIRMATIONS = 3
 """Relayed messages that must also arrive live before a topic switches to its live reader."""
@@ -363,6 +378,7 @@ class _IoWorker:
         self._jobs.put(job)
 
     def _run(self) -> None:
+        name_this_thread('rory-io')
         while (job := self._jobs.get()) is not None:
             try:
                 job()
@@ -435,6 +451,7 @@ class NodeRuntime:
         self.shadow_seen: dict[str, set[MessageId]] = {}
         self.handover: dict[str, _Handover] = {}
         self.orphans: dict[str, list[protocol.Msg]] = {}
+        self._shadow_sub: Subscription | None = None  # the replay topic's reader, until retired
         self.held_timers: list[Timer] = []
         self.publishers: list[Publisher] = []
         self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0, 'quarantined': 0}
@@ -541,7 +558,7 @@ class NodeRuntime:
         self._group = MutuallyExclusiveCallbackGroup()
         self._status_pub = Node.create_publisher(
             node, String, protocol.status_topic(self.env.node_id, self.env.channel),
-            protocol.STATUS_QOS,
+            protocol.STATUS_QOS, event_callbacks=_without_events_pub(),
         )
         if self.method.logs:
             # Loading the typestore costs ~0.1 s; do it before the first message needs it.
@@ -576,7 +593,7 @@ class NodeRuntime:
         self._next_seq = self.checkpoints.next_seq()
         if self.method.logs:
             on_envelope: Any = self._on_envelope  # rclpy's annotation omits (msg, info)
-            Node.create_subscription(
+            self._shadow_sub = Node.create_subscription(
                 self.node,
                 UInt8MultiArray,
                 protocol.replay_topic(self.env.node_id, self.env.channel),
@@ -584,6 +601,7 @@ class NodeRuntime:
                 protocol.REPLAY_QOS,
                 raw=True,
                 callback_group=self._group,
+                event_callbacks=_without_events_sub(),
             )
         self._status(
             StatusKind.HELLO,
@@ -825,8 +843,24 @@ class NodeRuntime:
         writer, self.writer = self.writer, None
         return self.next_segment - 1, writer
 
+    def _retire_shadow(self) -> None:
+        """Destroy the shadow subscription once nothing can come on it any more: released, every
+        topic handed over to its live reader, no relayed message waiting for a subscription.
+
+        Until a crash it would only lengthen every executor wait of the node (a subscription
+        and its place in the wait set); the supervisor sends a process nothing after that, and
+        a recovered process makes its own. Called from the periodic tick, never from the
+        subscription's own callback.
+        """
+        if (self._shadow_sub is None or not self.released or self.shadow_topics
+                or self.orphans or self.node is None):
+            return
+        Node.destroy_subscription(self.node, self._shadow_sub)
+        self._shadow_sub = None
+
     def _rotate_tick(self) -> None:
         # replay method: no checkpoints, but keep segments bounded in size.
+        self._retire_shadow()
         with self.lock:
             _, writer = self._rotate_segment()
         if writer is not None:
@@ -834,6 +868,7 @@ class NodeRuntime:
 
     def _checkpoint_tick(self) -> None:
         assert self.node is not None
+        self._retire_shadow()
         began = time.perf_counter()
         with self.lock:
             # The snapshot: the only part that needs the node paused between two callbacks.

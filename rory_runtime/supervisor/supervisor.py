@@ -41,6 +41,7 @@ from ..inflight import read_beat, slot_path
 from ..log import LogEntry, SegmentStore, default_typestore
 from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
+from ..threads import name_this_thread
 from .config import NodeConfig, SupervisorConfig
 from .diagnostics import NodeHealth, Reporter, age
 from .parameters import NODE_NAME as SUPERVISOR_NODE
@@ -800,9 +801,10 @@ class Supervisor:
         self.events.put(StatusReceived(node_id, status))
 
     def make_ring(self, node_id: str) -> Ring:
-        """A ring for one node (the shared ring context is created on first use)."""
+        """A ring for one node (the shared ring executor is created on first use; its readers
+        join the supervisor's own context and participant)."""
         if self._ring_ctx is None:
-            self._ring_ctx = RingContext()
+            self._ring_ctx = RingContext(self.ros_node.context)
         return Ring(self._ring_ctx, node_id)
 
     def _claim_store(self) -> tuple[RunMarker, bool, float | None]:
@@ -859,23 +861,32 @@ class Supervisor:
 
         return restore
 
-    def _apply_dds_settings(self) -> None:
-        # Before any participant exists in this process; children inherit os.environ. An
-        # operator's own Fast DDS profile wins.
+    def _apply_dds_settings(self) -> dict[str, str]:
+        """Put this process's own DDS settings in os.environ, before any participant exists
+        here; return the nodes' settings, to put there once the first participant is up
+        (children inherit os.environ). An operator's own Fast DDS profile wins."""
         if self.config.dds == 'fast_rediscovery' and not (
             os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
             or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')
         ):
-            os.environ.update(fast_rediscovery_env())
+            # The nodes' settings first: applying ours rewrites the discovery range they read.
+            nodes = fast_rediscovery_env()
+            os.environ.update(fast_rediscovery_env(supervisor=True))
+            return nodes
+        return {}
 
     def run(self) -> int:
         """Supervise until stopped. Returns the process exit code."""
-        self._apply_dds_settings()
+        nodes_dds = self._apply_dds_settings()
         # Its log goes to /rosout through rclpy (RosoutHandler); the console already has it.
         rclpy.init(args=['rory', '--ros-args', '--disable-stdout-logs',
                          *own_ros_args(self.ros_args)],
                    signal_handler_options=SignalHandlerOptions.NO)
         self.ros_node = Node(SUPERVISOR_NODE)
+        # Fast DDS read its profile file when this first participant was made, once for the
+        # process (the ring's participant, made later, gets the same); what os.environ says
+        # from here on is for the children: the nodes' own profile.
+        os.environ.update(nodes_dds)
         # Its nodes' topics live under its own namespace: a supervisor per robot, same config.
         self.channel = protocol.channel(self.ros_node.get_namespace())
         try:
@@ -937,6 +948,7 @@ class Supervisor:
         return code
 
     def _spin(self, executor: SingleThreadedExecutor) -> None:
+        name_this_thread('rory-ros')
         while rclpy.utilities.ok():
             try:
                 executor.spin_once(timeout_sec=SPIN_TIMEOUT)

@@ -217,3 +217,48 @@ def test_a_second_subscription_to_the_same_topic_is_refused_clearly(
     _adopt(rt, applied)
     with pytest.raises(attach.RoryError, match='subscribes twice to /numbers'):
         _adopt(rt, applied)
+
+
+@pytest.mark.ros
+def test_the_shadow_subscription_is_retired_only_once_nothing_can_come_on_it(
+    tmp_path: Path, applied: list[int], ros_domain: int
+) -> None:
+    # After the handover the shadow subscription would only lengthen every executor wait; it
+    # goes at the first tick after release with every topic live and no relayed message
+    # waiting for a subscription, and not before.
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from std_msgs.msg import UInt8MultiArray
+
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    try:
+        node = Node('shadow_retire', context=context)
+        rt = _runtime(tmp_path, Mode.RECOVER)
+        sub = _adopt(rt, applied)
+        shadow = node.create_subscription(UInt8MultiArray, '/rory/n/replay', lambda m: None,
+                                          QoSProfile(depth=10))
+        rt.node, rt._shadow_sub = node, shadow
+
+        def present() -> bool:
+            return any(s is shadow for s in node.subscriptions)
+
+        rt._from_shadow(_shadow(1))
+        rt._retire_shadow()
+        assert present()  # not released yet
+        rt._open_gates(next_segment=3)
+        rt._retire_shadow()
+        assert present() and '/numbers' in rt.shadow_topics  # still taken from the relay
+        rt.orphans['/later'] = [_shadow(9)]
+        rt._switch('/numbers')
+        rt._retire_shadow()
+        assert present()  # a relayed message still waits for its subscription
+        rt.orphans.clear()
+        rt._retire_shadow()
+        assert not present() and rt._shadow_sub is None
+        rt._retire_shadow()  # idempotent
+        _live(sub, 2)
+        assert applied == [1, 2]
+    finally:
+        context.try_shutdown()

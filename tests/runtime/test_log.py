@@ -584,3 +584,37 @@ def test_read_after_stops_before_a_bound_and_skips_a_segment_killed_before_its_f
     store.path(2).mkdir(mode=0o700)  # killed before the MCAP file existed
     assert list(store.read_after(None, before=4)) == [*first, *third]
     assert list(store.read_after(1, before=4)) == third
+
+
+def test_metadata_is_what_rosbags_writes(tmp_path: Path) -> None:
+    # The segment's metadata.yaml and MCAP metadata record come from our own close (libyaml,
+    # ~10x cheaper); they must say what rosbags' Writer.close says for the same bag.
+    import yaml
+    from rclpy.qos import QoSProfile
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from rory_runtime.qos import to_rosbag
+
+    offered = to_rosbag(QoSProfile(depth=10))
+    messages = [('/n', INT64, 100 + k, int64(k)) for k in range(3)]
+    messages += [('/scan', SCAN, 150, scan())]
+    ours = SegmentWriter(tmp_path / 'ours' / 'seg')
+    for topic, msgtype, t, data in messages:
+        ours.write(topic, msgtype, t, t - 1, 7, data, offered_qos=lambda: [offered])
+    ours.close()
+    theirs = Writer(tmp_path / 'theirs' / 'seg', version=9, storage_plugin=StoragePlugin.MCAP)
+    theirs.open()
+    connections = {}
+    for topic, msgtype, t, data in messages:
+        if topic not in connections:
+            connections[topic] = theirs.add_connection(topic, msgtype,
+                                                       typestore=default_typestore(),
+                                                       offered_qos_profiles=[offered])
+        theirs.write(connections[topic], t, data)
+    theirs.close()
+    assert (yaml.safe_load((tmp_path / 'ours' / 'seg' / 'metadata.yaml').read_text())
+            == yaml.safe_load((tmp_path / 'theirs' / 'seg' / 'metadata.yaml').read_text()))
+    with Reader(tmp_path / 'ours' / 'seg') as reader:
+        assert reader.message_count == 4
+        assert {c.topic: c.ext.offered_qos_profiles for c in reader.connections} == {
+            '/n': [offered], '/scan': [offered]}

@@ -100,3 +100,43 @@ def test_a_burst_beyond_the_history_is_reported_as_a_gap(
     assert missing, 'the burst fitted the history: nothing was tested'  # 400 in ~3 ms vs 26
     assert reported == missing
     assert all(g.publishers == 1 for g in rlog.gaps)
+
+
+def test_a_ring_on_the_supervisors_context_stays_passive_and_leaves_the_context_up(
+    ros_domain: int,
+) -> None:
+    # The supervisor hands its own context over, so the ring's readers join its participant.
+    # Its executor (spinning the supervisor's node) must not take the ring's messages, and
+    # shutting the ring down must not shut the supervisor's context.
+    from rclpy.executors import SingleThreadedExecutor
+
+    owner = Context()
+    rclpy.init(context=owner, domain_id=ros_domain)
+    sup_node = Node('supervisor_like', context=owner)
+    sup_executor = SingleThreadedExecutor(context=owner)
+    sup_executor.add_node(sup_node)
+    ctx = RingContext(owner)
+    ring = Ring(ctx, 'node')
+    ring.ensure([SPEC])
+    pub_node = Node('burst_publisher', context=owner)
+    pub = pub_node.create_publisher(Int64, SPEC.topic, QoSProfile(depth=100))
+    try:
+        deadline = time.monotonic() + 10.0
+        while ring.publisher_count(SPEC.topic) < 1 or pub.get_subscription_count() < 1:
+            assert time.monotonic() < deadline, 'ring reader and publisher never matched'
+            time.sleep(0.01)
+        for n in range(1, 6):
+            pub.publish(Int64(data=n))
+        pub.wait_for_all_acked(Duration(seconds=5.0))
+        for _ in range(5):
+            sup_executor.spin_once(timeout_sec=0.05)
+        taken: list[LogEntry] = []
+        ring.activate(taken.append)
+        assert [e.seq for e in taken] == [1, 2, 3, 4, 5]
+        for topic in ring.topics.values():
+            topic.destroy()
+        ctx.shutdown()
+        assert owner.ok()
+    finally:
+        sup_executor.shutdown(timeout_sec=1.0)
+        owner.try_shutdown()

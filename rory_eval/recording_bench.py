@@ -44,8 +44,8 @@ import yaml
 
 from rory_runtime.log import SegmentStore
 
+from .process_usage import peak_rss_mb, tree_cpu_ticks, tree_pids
 from .scenario import scenario_env
-from .simrun import peak_rss_mb, process_tree, tree_cpu_ticks
 
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE = REPO / 'examples' / 'sensor_sink'
@@ -351,7 +351,7 @@ class _Meter:
 
     def read(self) -> Usage:
         parts = tuple((self.names.get(pid, f'pid {pid}'), peak_rss_mb(pid))
-                      for pid in process_tree(self.root))
+                      for pid in tree_pids(self.root))
         return Usage(
             cpu_seconds=(tree_cpu_ticks(self.root) - self.ticks) / _CLK_TCK,
             wall_seconds=time.monotonic() - self.began,

@@ -31,6 +31,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Bool, String
 
+from rory_runtime import protocol
 from rory_runtime.dds import fast_rediscovery_env
 
 REPO = Path(__file__).resolve().parent.parent
@@ -100,6 +101,9 @@ class ScenarioResult:
     e_stop: list[tuple[float, bool]]
     events: list[dict[str, Any]] = field(repr=False)
     log: str = field(repr=False, default='')
+    # Readers of the node's shadow topic in the graph when the run ended (the node retires its
+    # own after the handover; -1: not looked at).
+    shadow_readers_at_end: int = -1
 
     @property
     def history(self) -> list[int]:
@@ -393,6 +397,9 @@ def run(
                     ):
                         break
                     time.sleep(0.005)
+                # While the node still runs.
+                shadow_readers = observer.node.count_subscribers(
+                    protocol.replay_topic(program.node))
     finally:
         observer.close()
         events.poll()
@@ -405,6 +412,7 @@ def run(
         e_stop=observer.e_stop,
         events=events.events,
         log=sup_log.read_text(),
+        shadow_readers_at_end=shadow_readers,
     )
 
 

@@ -42,10 +42,13 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
+from rory_eval.process_usage import TreeSampler, TreeUsage, peak_rss_mb, tree_cpu_ticks
+from rory_eval.process_usage import tree_pids as process_tree
 from rory_eval.scenario import joining, scenario_env
 
 REPO = Path(__file__).resolve().parent.parent
 _CLK_TCK = os.sysconf('SC_CLK_TCK')
+_SAMPLE_PERIOD = 1.0  # s between readings of each node's process tree (per role, for overhead)
 _RECORDERS = itertools.count(1)
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -105,6 +108,7 @@ class NodeUsage:
     cpu_seconds: float  # user + system, its threads and its child processes included
     wall_seconds: float
     peak_rss_mb: float  # sum of the VmHWM of the processes alive at the end (an upper bound)
+    tree: TreeUsage | None = None  # the same, per process role, with the steady half and PSS
 
     @property
     def cpu_percent(self) -> float:
@@ -145,6 +149,7 @@ class _Node:
     proc: subprocess.Popen[bytes] | None = None
     start_ticks: int = 0
     start_wall: float = 0.0
+    sampler: TreeSampler | None = None
     usage: NodeUsage | None = None
 
 
@@ -242,9 +247,17 @@ class SimRun:
                 assert node.proc is not None
                 node.start_ticks = tree_cpu_ticks(node.proc.pid)
                 node.start_wall = time.monotonic()
+                node.sampler = TreeSampler(node.proc.pid)
+                node.sampler.start()
             recorder.publish_once(deadline, self._check_nodes)
+            next_sample = time.monotonic() + _SAMPLE_PERIOD
             while sim.poll() is None:
                 self._check_nodes()
+                if time.monotonic() >= next_sample:
+                    next_sample += _SAMPLE_PERIOD
+                    for node in self._nodes:
+                        if node.sampler is not None:
+                            node.sampler.sample()
                 if time.monotonic() > deadline:
                     msg = f'the simulator did not finish in time\n{self._tail("sim")}'
                     raise SimRunError(msg)
@@ -259,6 +272,7 @@ class SimRun:
                         (tree_cpu_ticks(node.proc.pid) - node.start_ticks) / _CLK_TCK,
                         time.monotonic() - node.start_wall,
                         sum(peak_rss_mb(pid) for pid in process_tree(node.proc.pid)),
+                        node.sampler.finish() if node.sampler is not None else None,
                     )
                 exit_codes[node.name] = node.proc.poll()
             # Let the last outputs arrive before the recorder stops.
@@ -398,50 +412,6 @@ def _reap(proc: subprocess.Popen[bytes]) -> None:
     with contextlib.suppress(ProcessLookupError, PermissionError):
         os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-
-
-def _stat_fields(pid: int) -> list[str]:
-    try:
-        return Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    except OSError:
-        return []
-
-
-def process_tree(root: int) -> list[int]:
-    """root and every live descendant (by each process's parent in /proc)."""
-    children: dict[int, list[int]] = {}
-    for entry in Path('/proc').iterdir():
-        if entry.name.isdigit():
-            fields = _stat_fields(int(entry.name))
-            if fields:
-                children.setdefault(int(fields[1]), []).append(int(entry.name))
-    tree, todo = [], [root]
-    while todo:
-        pid = todo.pop()
-        tree.append(pid)
-        todo.extend(children.get(pid, ()))
-    return tree
-
-
-def tree_cpu_ticks(root: int) -> int:
-    """CPU ticks of a process tree: each live member's own, plus what the members' reaped
-    children used (a crashed node's time lands in its supervisor's cutime/cstime)."""
-    total = 0
-    for pid in process_tree(root):
-        fields = _stat_fields(pid)
-        if fields:
-            total += sum(int(f) for f in fields[11:15])  # utime, stime, cutime, cstime
-    return total
-
-
-def peak_rss_mb(pid: int) -> float:
-    try:
-        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
-            if line.startswith('VmHWM:'):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return 0.0
 
 
 def _read_ground_truth(path: Path) -> list[tuple[float, float, float, float]]:

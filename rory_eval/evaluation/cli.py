@@ -250,6 +250,9 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
         '',
         report.overhead_table(runs) or '(no overhead runs)',
         '',
+        *(['Per process (whole run; steady = its second half, every process up; PSS splits '
+           'shared libraries between the processes that map them):', '', breakdown, '']
+          if (breakdown := report.overhead_by_process(runs)) else []),
         '## Runs not correct or not judged',
         '',
         report.failures(judged) or 'none',

@@ -176,6 +176,48 @@ def overhead_table(runs: Sequence[tuple[RunRecord, Path]]) -> str:
     return '\n'.join(lines)
 
 
+def overhead_by_process(runs: Sequence[tuple[RunRecord, Path]]) -> str:
+    """Where Table II's overhead goes: per process role, CPU over the whole run and over its
+    second half (steady: every process up, one-time start-up costs behind), peak RSS and PSS,
+    for the bare node and for each process under RORY; means over the no-crash runs that
+    recorded them (records from before this breakdown have none)."""
+    by_cell: dict[tuple[str, str, str], list[RunRecord]] = defaultdict(list)
+    for record, _ in runs:
+        s = record.spec
+        if s.crash_at is None and not record.error and record.usage_by_role:
+            by_cell[(s.target, s.world, s.method)].append(record)
+    lines = ['| program | world | run | process | CPU whole run | CPU steady | peak RSS | PSS |',
+             '|---|---|---|---|---:|---:|---:|---:|']
+    for target in TARGETS:
+        for world in WORLDS:
+            for method in (BARE, 'rory'):
+                records = by_cell.get((target, world, method))
+                if not records:
+                    continue
+                roles = [r for r in ('node', 'supervisor', 'standby', 'reaped')
+                         if any(r in rec.usage_by_role for rec in records)]
+                for role in roles:
+                    lines.append(
+                        f'| {target} | {world} | {method} | {role} | '
+                        f'{_role_mean(records, role, "cpu_percent"):.1f}% | '
+                        f'{_role_mean(records, role, "steady_cpu_percent"):.1f}% | '
+                        f'{_role_mean(records, role, "peak_rss_mb"):.0f} MB | '
+                        f'{_role_mean(records, role, "pss_mb"):.0f} MB |')
+                if len(roles) > 1:
+                    lines.append(
+                        f'| {target} | {world} | {method} | **all** | '
+                        f'{statistics.fmean(r.cpu_percent for r in records):.1f}% | '
+                        f'{statistics.fmean(r.steady_cpu_percent for r in records):.1f}% | '
+                        f'{statistics.fmean(r.peak_rss_mb for r in records):.0f} MB | '
+                        f'{statistics.fmean(r.pss_mb for r in records):.0f} MB |')
+    return '\n'.join(lines) if len(lines) > 2 else ''
+
+
+def _role_mean(records: Sequence[RunRecord], role: str, key: str) -> float:
+    """Mean of one figure of one role over records (a record without that role counts 0)."""
+    return statistics.fmean(float(r.usage_by_role.get(role, {}).get(key, 0.0)) for r in records)
+
+
 def running_time(runs: Sequence[tuple[RunRecord, Path]], *, gap: float = 600.0
                  ) -> tuple[float, int]:
     """Seconds the evaluation spent running, and in how many sittings.

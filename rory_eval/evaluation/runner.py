@@ -59,6 +59,9 @@ class RunRecord:
     events: list[dict[str, Any]] = field(default_factory=list)  # recovered / exit / fatal
     cpu_percent: float = math.nan  # the target's process tree, % of one core
     peak_rss_mb: float = math.nan
+    steady_cpu_percent: float = math.nan  # the tree over the run's second half
+    pss_mb: float = math.nan  # the tree's proportional set size at the end
+    usage_by_role: dict[str, dict[str, Any]] = field(default_factory=dict)  # node, supervisor...
 
     @property
     def spec(self) -> RunSpec:
@@ -241,6 +244,10 @@ def _execute(spec: RunSpec, out: Path, domain_id: int, instrumented: Path,
     usage = result.usage.get(usage_name)
     if usage is not None:
         record.cpu_percent, record.peak_rss_mb = usage.cpu_percent, usage.peak_rss_mb
+        if usage.tree is not None:
+            record.steady_cpu_percent = usage.tree.steady_cpu_percent
+            record.pss_mb = usage.tree.pss_mb
+            record.usage_by_role = usage.tree.to_json()
 
 
 def _keep(result: SimRunResult, record: RunRecord, target: TargetSpec, pose_topic: str,

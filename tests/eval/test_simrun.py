@@ -59,6 +59,11 @@ def test_a_node_runs_against_the_simulator_and_is_measured(tmp_path: Path,
     assert result.ground_truth[0][1:3] == (0.8, 0.8)
     usage = result.usage['echo']
     assert 0 < usage.cpu_seconds < usage.wall_seconds and usage.peak_rss_mb > 20
+    # The same per role, read about once a second: one process, the node.
+    assert usage.tree is not None and list(usage.tree.roles) == ['node']
+    node = usage.tree.roles['node']
+    assert node.processes == 1 and 0 < node.steady_cpu_seconds <= node.cpu_seconds
+    assert 20 < node.pss_mb <= node.peak_rss_mb
 
 
 def test_a_node_that_dies_fails_the_run_naming_it(tmp_path: Path, ros_domain: int) -> None:

@@ -13,6 +13,7 @@ from rory_eval.evaluation.plan import BARE, RunSpec
 from rory_eval.evaluation.report import (
     correctness_table,
     judge_all,
+    overhead_by_process,
     overhead_table,
     recovery_table,
     running_time,
@@ -103,3 +104,31 @@ def test_running_time_sums_sittings_not_the_gaps_between_them(tmp_path: Path) ->
     busy, sittings = running_time(runs)
     assert sittings == 2
     assert busy == 75.0 + 60.0  # t0..t0+75, then the 60 s run
+
+
+def test_overhead_by_process_shows_each_role_and_the_steady_half() -> None:
+    def record(method: str, roles: dict[str, dict[str, float]], cpu: float, steady: float,
+               rss: float, pss: float) -> tuple[RunRecord, Path]:
+        spec = RunSpec('amcl', 'real_room', method, 0, None, 30.0)
+        return (RunRecord(run=spec.to_json(), cpu_percent=cpu, steady_cpu_percent=steady,
+                          peak_rss_mb=rss, pss_mb=pss, usage_by_role=roles), Path())
+
+    def role(cpu: float, steady: float, rss: float, pss: float) -> dict[str, float]:
+        return {'cpu_percent': cpu, 'steady_cpu_percent': steady, 'peak_rss_mb': rss,
+                'pss_mb': pss}
+
+    runs = [
+        record(BARE, {'node': role(10.0, 9.5, 85.0, 70.0)}, 10.0, 9.5, 85.0, 70.0),
+        record('rory', {'node': role(11.0, 10.5, 95.0, 60.0),
+                        'supervisor': role(1.5, 0.8, 82.0, 45.0),
+                        'standby': role(4.0, 0.3, 78.0, 40.0)}, 16.5, 11.6, 255.0, 145.0),
+        # A record from before the breakdown has no roles and is left out.
+        (RunRecord(run=RunSpec('amcl', 'real_room', 'rory', 1, None, 30.0).to_json(),
+                   cpu_percent=99.0, peak_rss_mb=999.0), Path()),
+    ]
+    table = overhead_by_process(runs)
+    assert '| amcl | real_room | bare | node | 10.0% | 9.5% | 85 MB | 70 MB |' in table
+    assert '| amcl | real_room | rory | standby | 4.0% | 0.3% | 78 MB | 40 MB |' in table
+    assert '| amcl | real_room | rory | **all** | 16.5% | 11.6% | 255 MB | 145 MB |' in table
+    assert '99.0' not in table and '| bare | **all**' not in table
+    assert overhead_by_process(runs[2:]) == ''

@@ -93,17 +93,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     env = {**os.environ, 'ROS_DOMAIN_ID': str(args.domain),
            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
-    peers_env = {**env, **fast_rediscovery_env(env)}
-    sup_env = {**env, **fast_rediscovery_env(env, supervisor=True)}
+    dds_env = {**env, **fast_rediscovery_env(env)}
     results: dict[str, list[dict[str, float]]] = {c: [] for c in CONFIGS}
-    peers = _peers(args.peers, peers_env)
+    peers = _peers(args.peers, dds_env)
     try:
         for run in range(args.runs):
             for config in CONFIGS:
                 out = subprocess.run(
                     [sys.executable, '-m', 'rory_eval.ring_participant_bench', '--child', config,
                      '--topics', str(args.topics), '--seconds', str(args.seconds)],
-                    env=sup_env, capture_output=True, text=True, check=True,
+                    env=dds_env, capture_output=True, text=True, check=True,
                     timeout=args.seconds + 60)
                 results[config].append(json.loads(out.stdout.strip().splitlines()[-1]))
                 print(f'run {run + 1} {config}: {results[config][-1]}', file=sys.stderr)

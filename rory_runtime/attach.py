@@ -108,6 +108,17 @@ def _without_events_sub() -> SubscriptionEventCallbacks:
     return SubscriptionEventCallbacks(use_default_callbacks=False)
 
 
+def _ranges(numbers: list[int]) -> str:
+    """``[4, 5, 6, 9]`` as ``4-6, 9``."""
+    spans: list[list[int]] = []
+    for n in numbers:
+        if spans and n == spans[-1][1] + 1:
+            spans[-1][1] = n
+        else:
+            spans.append([n, n])
+    return ', '.join(str(a) if a == b else f'{a}-{b}' for a, b in spans)
+
+
 SWITCH_CONFIRMATIONS = 3
 """Relayed messages that must also arrive live before a topic switches to its live reader."""
 
@@ -454,7 +465,8 @@ class NodeRuntime:
         self._shadow_sub: Subscription | None = None  # the replay topic's reader, until retired
         self.held_timers: list[Timer] = []
         self.publishers: list[Publisher] = []
-        self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0, 'quarantined': 0}
+        self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0, 'quarantined': 0,
+                      'passed_by_relay': 0}
         # What the node is applying right now, readable after a crash (poison detection).
         self.inflight = InFlightSlot(slot_path(env.store, env.node_id), env.incarnation)
         self.checkpoints = CheckpointStore(env.store, env.node_id)
@@ -787,11 +799,16 @@ class NodeRuntime:
         self.next_segment = max(self.next_segment, next_segment)
         self._drain_pending([t for t in self.inputs if t not in self.shadow_topics])
 
-    def _drain_pending(self, topics: list[str]) -> None:
+    def _drain_pending(self, topics: list[str]) -> dict[str, list[int]]:
+        """Apply what the live readers of ``topics`` hold and nobody applied yet, in receive
+        order. Returns, per topic, the sequence numbers left out as passed by the relay
+        (:meth:`_passed_by_relay`)."""
+        passed = {topic: self._passed_by_relay(topic) for topic in topics}
         backlog = [
             (info['received_timestamp'], self.inputs[topic], ident, raw, info)
             for topic in topics
             for ident, raw, info in self.pending_live[topic]
+            if ident not in passed[topic]
         ]
         for topic in topics:
             self.pending_live[topic] = []
@@ -801,6 +818,32 @@ class NodeRuntime:
                 self.stats['duplicates'] += 1
             elif not self._is_quarantined(inp.topic, ident):
                 self._apply(inp, raw, info, ident, log=True)
+        return {topic: sorted(ident[1] for ident in idents)
+                for topic, idents in passed.items() if idents}
+
+    def _passed_by_relay(self, topic: str) -> set[MessageId]:
+        """Live messages of ``topic`` the relay skipped and can no longer deliver in order.
+
+        The live reader and the supervisor's ring are two DDS readers on this host. After an
+        outage longer than the DDS lease the publisher matches each of them again on its own
+        schedule, so the live reader may hold a message the ring never got. If the relay has
+        already delivered a later one of the same publisher, applying it now would apply the
+        publisher's messages out of order; it is left out instead (the supervisor reports it
+        inside its input gap, since its ring never logged it). The live reader's own order is
+        the publisher's, so "later" is the position in its pending list. With more than one
+        publisher the sequence numbers are several publishers' and positions across them mean
+        nothing: those messages are applied as before.
+        """
+        seen = self.shadow_seen.get(topic)
+        pending = self.pending_live[topic]
+        if not seen or not pending or self.inputs[topic].sub.get_publisher_count() != 1:
+            return set()
+        last_relayed = max(
+            (i for i, (ident, _, _) in enumerate(pending) if ident in seen), default=-1
+        )
+        window = self.windows[topic]
+        return {ident for ident, _, _ in pending[:last_relayed]
+                if ident not in seen and ident not in window}
 
     def _note_relayed(self, topic: str, ident: MessageId) -> None:
         state = self.handover.setdefault(topic, _Handover())
@@ -826,10 +869,18 @@ class NodeRuntime:
         """Take ``topic`` from its live reader from now on."""
         with self.lock:
             self.shadow_topics.discard(topic)
-            self._drain_pending([topic])
+            passed = self._drain_pending([topic]).get(topic, [])
             self.shadow_seen.pop(topic, None)
         self.handover.pop(topic, None)
-        self._status(StatusKind.SWITCHED, topic=topic)
+        if passed:
+            self.stats['passed_by_relay'] += len(passed)
+            self._error(
+                f'{topic}: {len(passed)} message(s) (publication seq {_ranges(passed)}) '
+                'reached only the live reader, after the relay had delivered later ones from '
+                'the same publisher: not applied, to keep its order (RORY\'s recorder never '
+                'got them; see the input gap)'
+            )
+        self._status(StatusKind.SWITCHED, topic=topic, passed_by_relay=passed)
 
     # -- checkpoints --------------------------------------------------------------------------
 

@@ -7,8 +7,7 @@ from collections.abc import Mapping
 from importlib import resources
 
 
-def fast_rediscovery_env(environ: Mapping[str, str] | None = None, *,
-                         supervisor: bool = False) -> dict[str, str]:
+def fast_rediscovery_env(environ: Mapping[str, str] | None = None) -> dict[str, str]:
     """Environment for every process of a robot run under RORY (supervisor and nodes alike).
 
     UDPv4 only: after a SIGKILL, Fast DDS's shared-memory transport left the restarted process
@@ -21,21 +20,15 @@ def fast_rediscovery_env(environ: Mapping[str, str] | None = None, *,
 
     Args:
         environ: The environment the processes would otherwise get (default: this process's).
-        supervisor: The profile of the supervisor's own participants: the same but a lease of
-            3 s announced every 1 s instead of 1 s every 0.25 s (the ``_supervisor`` files).
-            A node must be forgotten fast when it is killed; a supervisor need not, and the
-            frequent announcements cost each idle participant ~0.4 % of a core more.
     """
     environ = os.environ if environ is None else environ
     files = resources.files(__package__)
-    role = '_supervisor' if supervisor else ''
     if environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', '').strip().upper() == 'LOCALHOST':
         return {
             'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET',
-            'FASTRTPS_DEFAULT_PROFILES_FILE': str(
-                files.joinpath(f'fast_rediscovery_localhost{role}.xml')),
+            'FASTRTPS_DEFAULT_PROFILES_FILE': str(files.joinpath('fast_rediscovery_localhost.xml')),
         }
     return {
         'FASTDDS_BUILTIN_TRANSPORTS': 'UDPv4',
-        'FASTRTPS_DEFAULT_PROFILES_FILE': str(files.joinpath(f'fast_rediscovery{role}.xml')),
+        'FASTRTPS_DEFAULT_PROFILES_FILE': str(files.joinpath('fast_rediscovery.xml')),
     }

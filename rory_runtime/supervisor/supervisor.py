@@ -450,7 +450,8 @@ class ManagedNode:
             self.sup.events_log.write('checkpoint', self.id, **_fields(status))
         elif kind == StatusKind.SWITCHED:
             topic = str(status.get('topic'))
-            self.sup.events_log.write('switched', self.id, topic=topic)
+            passed = status.get('passed_by_relay') or []
+            self.sup.events_log.write('switched', self.id, topic=topic, passed_by_relay=passed)
             if self.recovery is not None and self.recovery.on_switched(topic):
                 self._end_recovery()
         elif kind == StatusKind.ERROR:
@@ -861,32 +862,28 @@ class Supervisor:
 
         return restore
 
-    def _apply_dds_settings(self) -> dict[str, str]:
-        """Put this process's own DDS settings in os.environ, before any participant exists
-        here; return the nodes' settings, to put there once the first participant is up
-        (children inherit os.environ). An operator's own Fast DDS profile wins."""
+    def _apply_dds_settings(self) -> None:
+        # Before any participant exists in this process; children inherit os.environ. An
+        # operator's own Fast DDS profile wins. The supervisor gets the nodes' profile, lease
+        # and all: its participant carries the ring, which must see the network as the node's
+        # own reader does. With a longer lease here (tried: 3 s) a link outage between 1 and
+        # 3 s dropped the node's reader at the publisher but not the ring's, the two were
+        # matched again at different times, and the node's reader could hold a message the
+        # ring never got (tests/integration/test_multihost.py).
         if self.config.dds == 'fast_rediscovery' and not (
             os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
             or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')
         ):
-            # The nodes' settings first: applying ours rewrites the discovery range they read.
-            nodes = fast_rediscovery_env()
-            os.environ.update(fast_rediscovery_env(supervisor=True))
-            return nodes
-        return {}
+            os.environ.update(fast_rediscovery_env())
 
     def run(self) -> int:
         """Supervise until stopped. Returns the process exit code."""
-        nodes_dds = self._apply_dds_settings()
+        self._apply_dds_settings()
         # Its log goes to /rosout through rclpy (RosoutHandler); the console already has it.
         rclpy.init(args=['rory', '--ros-args', '--disable-stdout-logs',
                          *own_ros_args(self.ros_args)],
                    signal_handler_options=SignalHandlerOptions.NO)
         self.ros_node = Node(SUPERVISOR_NODE)
-        # Fast DDS read its profile file when this first participant was made, once for the
-        # process (the ring's participant, made later, gets the same); what os.environ says
-        # from here on is for the children: the nodes' own profile.
-        os.environ.update(nodes_dds)
         # Its nodes' topics live under its own namespace: a supervisor per robot, same config.
         self.channel = protocol.channel(self.ros_node.get_namespace())
         try:

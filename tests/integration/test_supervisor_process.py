@@ -212,9 +212,8 @@ def test_under_localhost_rory_runs_no_shared_memory_and_still_hears_plain_peers(
         shm = [t for t in _threads(pid) if t.startswith('dds.shm')]
         assert not shm, f'{who} runs Fast DDS shared memory: {shm}'
         assert any(t.startswith('dds.udp') for t in _threads(pid)), who
-    # The supervisor's own participants announce themselves less often (its own profile);
-    # the node and the standby that will replace it keep the nodes' profile, whose short
-    # lease lets the graph forget a killed node within 1 s.
+    # The node and the standby that will replace it run RORY's profile, whose short lease
+    # lets the graph forget a killed node within 1 s.
     wait_for(lambda: any(e['kind'] == 'standby' for e in read_events(store)), 20, 'a standby')
     standby_pid = next(e['pid'] for e in read_events(store) if e['kind'] == 'standby')
     for pid in (node_pid, standby_pid):

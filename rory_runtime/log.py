@@ -43,7 +43,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO, Final, Literal
 
 import yaml
-from rosbags.interfaces import Connection, ConnectionExtRosbag2, MessageDefinitionFormat, Qos
+from rosbags.interfaces import (
+    Connection,
+    ConnectionExtRosbag2,
+    MessageDefinition,
+    MessageDefinitionFormat,
+    Qos,
+)
 from rosbags.rosbag2 import CompressionMode, StoragePlugin, Writer, WriterError
 from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.rosbag2.storage_mcap import (
@@ -206,6 +212,14 @@ def _dump_yaml(data: object) -> str:
     return text
 
 
+def qos_document(offered_qos_profiles: Sequence[Qos]) -> str:
+    """The offered QoS profiles as a rosbag2 version 9 channel record holds them: the text
+    rosbags writes (keys sorted, block style), emitted by libyaml."""
+    text: str = yaml.dump(dump_qos_v9(list(offered_qos_profiles)), Dumper=_YAML_DUMPER,
+                          default_flow_style=False, sort_keys=True)
+    return text.strip()
+
+
 @cache
 def _definition(typestore: Typestore, msgtype: str) -> tuple[str, str]:
     """A type's message definition and RIHS01 hash; the same for every segment, so computed
@@ -225,6 +239,63 @@ class _SegmentBag(Writer):
         """Create the bag directory (mode 0700) and the .mcap file (0600)."""
         super().open()
         _make_private(self.path)
+
+    def add_connection(
+        self,
+        topic: str,
+        msgtype: str,
+        *,
+        typestore: Typestore | None = None,
+        msgdef: str | None = None,
+        rihs01: str | None = None,
+        serialization_format: str = 'cdr',
+        offered_qos_profiles: Sequence[Qos] = (),
+    ) -> Connection:
+        """Rosbags' ``Writer.add_connection`` for a version 9 bag, the offered QoS dumped by
+        libyaml.
+
+        Rosbags builds a ruamel YAML emitter for each connection: ~10 ms of CPU in the node's
+        executor (py-spy, amcl under RORY) for each topic's first message in every segment,
+        and a node starts a segment at every checkpoint. The channel record holds the same
+        document (tests/runtime/test_log.py reads it back with rosbags).
+        """
+        storage = self.storage
+        if msgdef is None or rihs01 is None or self.version < 9:
+            return super().add_connection(
+                topic, msgtype, typestore=typestore, msgdef=msgdef, rihs01=rihs01,
+                serialization_format=serialization_format,
+                offered_qos_profiles=offered_qos_profiles,
+            )
+        if storage is None:
+            msg = 'Bag was not opened.'
+            raise WriterError(msg)
+        idl = msgdef.startswith('=' * 80 + '\nIDL: ')
+        connection = Connection(
+            id=len(self.connections) + 1,
+            topic=topic,
+            msgtype=msgtype,
+            msgdef=MessageDefinition(
+                MessageDefinitionFormat.IDL if idl else MessageDefinitionFormat.MSG, msgdef
+            ),
+            digest=rihs01,
+            msgcount=0,
+            ext=ConnectionExtRosbag2(
+                serialization_format=serialization_format,
+                offered_qos_profiles=list(offered_qos_profiles),
+            ),
+            owner=self,
+        )
+        if any(c.topic == topic and c.msgtype == msgtype and c.ext == connection.ext
+               for c in self.connections):
+            msg = f'Connection can only be added once: {connection!r}.'
+            raise WriterError(msg)
+        if msgtype not in self.added_types:
+            storage.add_msgtype(connection)
+            self.added_types.add(msgtype)
+        storage.add_connection(connection, qos_document(offered_qos_profiles))
+        self.connections.append(connection)
+        self.counts[connection.id] = 0
+        return connection
 
     def close(self) -> None:
         """Write the MCAP summary and metadata record, then metadata.yaml (0600).

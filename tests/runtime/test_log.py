@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 from rclpy.serialization import serialize_message
+from rosbags.interfaces import Qos
 from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import LaserScan
 from std_msgs.msg import Int64
@@ -618,3 +619,42 @@ def test_metadata_is_what_rosbags_writes(tmp_path: Path) -> None:
         assert reader.message_count == 4
         assert {c.topic: c.ext.offered_qos_profiles for c in reader.connections} == {
             '/n': [offered], '/scan': [offered]}
+
+
+def test_channel_qos_document_is_the_text_rosbags_writes() -> None:
+    # A segment's channel records carry the offered QoS as YAML. Rosbags emits it with ruamel
+    # (~6 ms a connection, in the node's executor); ours comes from libyaml and must be the
+    # same text, whatever the profile.
+    from io import StringIO
+
+    from rclpy.duration import Duration
+    from rclpy.qos import (
+        QoSDurabilityPolicy,
+        QoSLivelinessPolicy,
+        QoSProfile,
+        QoSReliabilityPolicy,
+        qos_profile_sensor_data,
+    )
+    from rosbags.rosbag2.metadata import dump_qos_v9
+    from ruamel.yaml import YAML
+
+    from rory_runtime.log import qos_document
+    from rory_runtime.qos import to_rosbag
+
+    def theirs(profiles: list[Qos]) -> str:  # rosbags' Writer.add_connection, version 9
+        stream = StringIO()
+        emitter = YAML(typ='safe')
+        emitter.default_flow_style = False
+        emitter.dump(dump_qos_v9(profiles), stream)
+        return stream.getvalue().strip()
+
+    latched = QoSProfile(
+        depth=1, durability=QoSDurabilityPolicy.TRANSIENT_LOCAL,
+        reliability=QoSReliabilityPolicy.RELIABLE, deadline=Duration(seconds=1, nanoseconds=5),
+        liveliness=QoSLivelinessPolicy.MANUAL_BY_TOPIC,
+        lifespan=Duration(seconds=2**31 - 1, nanoseconds=999_999_999),
+    )
+    for profiles in ([], [QoSProfile(depth=10)], [qos_profile_sensor_data],
+                     [latched, QoSProfile(depth=5)]):
+        offered = [to_rosbag(p) for p in profiles]
+        assert qos_document(offered) == theirs(offered)

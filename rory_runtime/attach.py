@@ -842,8 +842,10 @@ class NodeRuntime:
             (i for i, (ident, _, _) in enumerate(pending) if ident in seen), default=-1
         )
         window = self.windows[topic]
+        quarantined = self.env.quarantined  # skipped anyway, and counted as such
         return {ident for ident, _, _ in pending[:last_relayed]
-                if ident not in seen and ident not in window}
+                if ident not in seen and ident not in window
+                and (topic, ident) not in quarantined}
 
     def _note_relayed(self, topic: str, ident: MessageId) -> None:
         state = self.handover.setdefault(topic, _Handover())

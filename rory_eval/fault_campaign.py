@@ -27,6 +27,7 @@ from pathlib import Path
 
 from rory_eval.scenario import Kill, Program, ScenarioResult, run
 from rory_eval.simrun import exit_on_sigterm
+from rory_runtime.protocol import seq_ranges
 
 FLAKY_DIR = Path(__file__).resolve().parent / 'flaky'
 FLAKY = Program(FLAKY_DIR, FLAKY_DIR / 'keyvars.yaml', 'flaky_integrator.py',
@@ -101,21 +102,11 @@ def judge(case: Case, result: ScenarioResult) -> Outcome:
     lost = sum(1 for n in range(1, COUNT + 1) if n not in seen)
     duplicated = sum(c - 1 for c in seen.values() if c > 1)
     states = [e.get('new') for e in result.events if e['kind'] == 'state']
-    gaps = _ranges([n for n in range(1, COUNT + 1) if n not in seen])
+    gaps = seq_ranges([n for n in range(1, COUNT + 1) if n not in seen], sep=',')
     covered = sum(int(r.get('crashes', 1)) for r in result.recoveries)
     return Outcome(case, history == list(range(1, COUNT + 1)), lost, duplicated,
                    'FATAL' in states, len(result.recoveries), missing=gaps,
                    strikes=len(result.kills), covered=covered)
-
-
-def _ranges(numbers: list[int]) -> str:
-    out: list[str] = []
-    for n in numbers:
-        if out and out[-1].split('-')[-1] == str(n - 1):
-            out[-1] = f'{out[-1].split("-")[0]}-{n}'
-        else:
-            out.append(str(n))
-    return ','.join(out)
 
 
 def run_case(case: Case, workdir: Path, domain_id: int) -> Outcome:

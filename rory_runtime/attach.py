@@ -108,17 +108,6 @@ def _without_events_sub() -> SubscriptionEventCallbacks:
     return SubscriptionEventCallbacks(use_default_callbacks=False)
 
 
-def _ranges(numbers: list[int]) -> str:
-    """``[4, 5, 6, 9]`` as ``4-6, 9``."""
-    spans: list[list[int]] = []
-    for n in numbers:
-        if spans and n == spans[-1][1] + 1:
-            spans[-1][1] = n
-        else:
-            spans.append([n, n])
-    return ', '.join(str(a) if a == b else f'{a}-{b}' for a, b in spans)
-
-
 SWITCH_CONFIRMATIONS = 3
 """Relayed messages that must also arrive live before a topic switches to its live reader."""
 
@@ -876,8 +865,9 @@ class NodeRuntime:
         self.handover.pop(topic, None)
         if passed:
             self.stats['passed_by_relay'] += len(passed)
+            seqs = protocol.seq_ranges(passed)
             self._error(
-                f'{topic}: {len(passed)} message(s) (publication seq {_ranges(passed)}) '
+                f'{topic}: {len(passed)} message(s) (publication seq {seqs}) '
                 'reached only the live reader, after the relay had delivered later ones from '
                 'the same publisher: not applied, to keep its order (RORY\'s recorder never '
                 'got them; see the input gap)'

@@ -36,6 +36,7 @@ import hmac
 import json
 import re
 import struct
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -74,6 +75,17 @@ SEQ_MASK: Final = 0xFFFFFFFF
 
 MessageId = tuple[int, int]
 """A message's identity: (publisher source timestamp ns, publisher sequence number & SEQ_MASK)."""
+
+
+def seq_ranges(numbers: Iterable[int], sep: str = ', ') -> str:
+    """Sequence numbers as runs: ``[4, 5, 6, 9]`` is ``4-6, 9``."""
+    spans: list[list[int]] = []
+    for n in numbers:
+        if spans and n == spans[-1][1] + 1:
+            spans[-1][1] = n
+        else:
+            spans.append([n, n])
+    return sep.join(str(a) if a == b else f'{a}-{b}' for a, b in spans)
 
 
 def message_id(info: dict[str, Any]) -> MessageId:

@@ -38,13 +38,15 @@ eval: $(STAMP)
 # Recovery time per method (cold and warm starts), median of 10 runs, side by side; whether
 # recording keeps up with scan + odom + cloud + 4 MB map, bare against RORY; checkpoint stall
 # for 1 and 16 MB of state; recovery time for crashes at 9, 60 and 300 s; the overhead of each
-# mechanism on amcl and grid_slam, bare against restart/checkpoint/replay/rory (~60 min, not in CI).
+# mechanism on amcl and grid_slam, bare against restart/checkpoint/replay/rory; the memory floor
+# of RORY's three processes, started apart or forked from one (~60 min, not in CI).
 bench: $(STAMP)
 	$(PY) -m rory_eval.bench --runs 10
 	$(PY) -m rory_eval.recording_bench --seconds 30
 	$(PY) -m rory_eval.stall_bench
 	$(PY) -m rory_eval.length_bench
 	$(PY) -m rory_eval.overhead_bench --runs 3
+	$(PY) -m rory_eval.fork_memory_bench --runs 3
 
 # How fast a SIGKILLed and restarted process is heard, per DDS setting.
 discovery: $(STAMP)

@@ -470,6 +470,8 @@ class NodeRuntime:
         self._startup_timer: Timer | None = None
         self._started = False
         self._io = _IoWorker()
+        # The buffers of the last packed checkpoint's large arrays, for the next snapshot.
+        self._array_pool = codec.ArrayPool()
         atexit.register(self.close)
 
     @property
@@ -778,7 +780,15 @@ class NodeRuntime:
             if self.method.checkpoints or self.method.logs:
                 tick = self._checkpoint_tick if self.method.checkpoints else self._rotate_tick
                 Node.create_timer(self.node, self.interval, tick, callback_group=self._group)
+        if self.method.checkpoints:
+            self._io.submit(self._prime_array_pool)
         self._status(StatusKind.RELEASED, **self.stats)
+
+    def _prime_array_pool(self) -> None:
+        # On the I/O thread: the first snapshot's copies land in memory already written. A
+        # variable that cannot be read is the checkpoint's to report.
+        with contextlib.suppress(CodecError):
+            self._array_pool.prime(read_state(self.spec, self.node))
 
     def _open_gates(self, next_segment: int) -> None:
         """Unmute, log from ``next_segment`` on, and apply what live readers hold for the topics
@@ -918,7 +928,8 @@ class NodeRuntime:
             # Arrays are copied here and packed by the I/O thread, so a 16 MB grid costs the
             # executor one memcpy, not the several copies packing makes.
             try:
-                snapshot = codec.snapshot_vars(read_state(self.spec, self.node))
+                snapshot = codec.snapshot_vars(read_state(self.spec, self.node),
+                                               self._array_pool)
             except CodecError as err:
                 self._error(f'checkpoint skipped: {err}')
                 return
@@ -937,6 +948,8 @@ class NodeRuntime:
             except CodecError as err:
                 self._error(f'checkpoint {seq} not written: {err}')
                 return
+            finally:
+                self._array_pool.refill(snapshot)
             ckpt = Checkpoint(
                 node=self.env.node_id,
                 seq=seq,

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import Point
 
-from rory_runtime.codec import decode_vars, encode_vars, pack_snapshot, snapshot_vars
+from rory_runtime.codec import ArrayPool, decode_vars, encode_vars, pack_snapshot, snapshot_vars
 from rory_runtime.errors import CodecError
 
 
@@ -66,3 +66,71 @@ def test_what_cannot_be_checkpointed_is_refused_at_the_snapshot() -> None:
 def test_plain_encoding_after_a_snapshot_is_not_deferred() -> None:
     snapshot_vars({'grid': GRID})
     assert decode_vars(encode_vars({'grid': GRID}))['grid'].tolist() == GRID.tolist()
+
+
+# -- ArrayPool: the buffers of the last packed snapshot, for the next -------------------------
+
+BIG = np.arange(64 * 1024, dtype=np.float32).reshape(256, 256)  # 256 kB: pooled
+SMALL = np.arange(16, dtype=np.int64)  # below ArrayPool.MIN_BYTES: never pooled
+
+
+def test_a_pooled_snapshot_gives_encode_vars_bytes_and_reuses_the_last_buffers() -> None:
+    pool = ArrayPool()
+    grid = BIG.copy()
+    values: dict[str, object] = {'grid': grid, 'small': SMALL, 'nested': [BIG]}
+    first = snapshot_vars(values, pool)
+    assert pack_snapshot(first) == encode_vars(values)
+    pool.refill(first)
+    assert len(pool) == 2  # the two large arrays, not the small one
+    grid += 1.0
+    second = snapshot_vars(values, pool)
+    assert len(pool) == 0  # both buffers went to the new snapshot
+    expected = encode_vars(values)
+    grid += 1.0  # the node goes on; the snapshot must not see it
+    assert pack_snapshot(second) == expected
+
+
+def test_a_buffer_is_never_in_two_unpacked_snapshots() -> None:
+    pool = ArrayPool()
+    grid = BIG.copy()
+    values: dict[str, object] = {'grid': grid}
+    a = snapshot_vars(values, pool)
+    grid += 1.0
+    b = snapshot_vars(values, pool)  # taken before a was packed: a new buffer
+    b_bytes = encode_vars(values)
+    a_bytes = pack_snapshot(a)
+    pool.refill(a)
+    grid += 1.0
+    c = snapshot_vars(values, pool)  # takes a's buffer; b still holds its own
+    c_bytes = encode_vars(values)
+    grid += 1.0
+    assert pack_snapshot(b) == b_bytes
+    assert pack_snapshot(c) == c_bytes
+    assert a_bytes != b_bytes != c_bytes
+
+
+def test_buffers_go_by_dtype_and_shape_and_a_refill_lets_the_old_ones_go() -> None:
+    pool = ArrayPool()
+    pool.refill(snapshot_vars({'grid': BIG}, pool))
+    reshaped = {'grid': BIG.reshape(128, 512)}
+    snapshot = snapshot_vars(reshaped, pool)
+    assert len(pool) == 1  # another shape: not taken
+    assert pack_snapshot(snapshot) == encode_vars(reshaped)
+    pool.refill(snapshot)
+    assert len(pool) == 1  # the 256x256 buffer is let go, the 128x512 one kept
+    snapshot_vars({'grid': BIG.astype(np.float64)}, pool)
+    assert len(pool) == 1  # another dtype: not taken
+
+
+def test_prime_writes_buffers_for_large_top_level_arrays_only_into_an_empty_pool() -> None:
+    pool = ArrayPool()
+    pool.prime({'grid': BIG, 'small': SMALL, 'nested': [BIG], 'text': 'x',
+                'objects': np.array([object()] * 20000, dtype=object)})
+    assert len(pool) == 1
+    values: dict[str, object] = {'grid': BIG}
+    snapshot = snapshot_vars(values, pool)
+    assert len(pool) == 0
+    assert pack_snapshot(snapshot) == encode_vars(values)
+    pool.refill(snapshot)
+    pool.prime({'a': BIG, 'b': BIG})  # not empty: left as it is
+    assert len(pool) == 1

@@ -28,12 +28,20 @@ pytestmark = pytest.mark.ros
 
 
 def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: int) -> None:
-    config = prepare(tmp_path, 'rory', interval=0.5, pace='fast')
+    # A released node destroys its shadow subscription at its first checkpoint tick (nothing
+    # comes on it after the handover); a long interval keeps it up while the rogue publishes.
+    config = prepare(tmp_path, 'rory', interval=60.0, pace='fast')
     store = tmp_path / 'store-rory'
-    sup = subprocess.Popen(
-        [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
-        env=scenario_env(ros_domain), cwd=tmp_path, stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT, start_new_session=True)
+    log = tmp_path / 'supervisor.log'
+    refusal = "ignoring malformed status: status signature does not match this run's key"
+    # The supervisor's output goes to a file, so that the test can wait for its refusal: the
+    # rogue's writer having matched the supervisor's reader does not mean the reader has matched
+    # the writer yet, and a writer destroyed before that takes its message with it.
+    with log.open('wb') as out:
+        sup = subprocess.Popen(
+            [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
+            env=scenario_env(ros_domain), cwd=tmp_path, stdout=out,
+            stderr=subprocess.STDOUT, start_new_session=True)
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain,
                signal_handler_options=SignalHandlerOptions.NO)
@@ -56,6 +64,8 @@ def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: i
             protocol.StatusKind.RELEASED, 'integrator', incarnation, key=bytes(32))))
         wait_for(lambda: any(e['kind'] == 'error' and 'not signed' in e.get('message', '')
                               for e in events(store)), 20, "the node's refusal")
+        wait_for(lambda: refusal in log.read_text(errors='replace'), 20,
+                 "the supervisor's refusal")
         kinds = [e['kind'] for e in events(store)]
         assert 'exit' not in kinds  # the node goes on
     finally:
@@ -63,9 +73,8 @@ def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: i
         context.try_shutdown()
         sup.send_signal(signal.SIGINT)
         try:
-            out, _ = sup.communicate(timeout=20)
+            sup.wait(timeout=20)
         except subprocess.TimeoutExpired:
             os.killpg(sup.pid, signal.SIGKILL)
-            out, _ = sup.communicate()
-    text = out.decode()
-    assert "ignoring malformed status: status signature does not match this run's key" in text
+            sup.wait()
+    assert refusal in log.read_text(errors='replace')

@@ -37,7 +37,15 @@ from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Bool, Int64, String
 
 from .hosts import Host, Hosts, netns_available, stop
-from .scenario import EXAMPLE, INTEGRATOR, ScenarioResult, prepare, scenario_env
+from .scenario import (
+    EXAMPLE,
+    INTEGRATOR,
+    EventsFile,
+    EventTracker,
+    ScenarioResult,
+    prepare,
+    scenario_env,
+)
 
 PUBLISHER = EXAMPLE / 'count_publisher.py'
 
@@ -94,56 +102,11 @@ class HostRun:
         return sorted(out)
 
 
-class _Follow:
-    """Follows a JSON-lines file another process appends to."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.records: list[dict[str, Any]] = []
-        self.changed = time.monotonic()  # when the last record came
-        self._offset = 0
-
-    def poll(self) -> list[dict[str, Any]]:
-        if not self.path.exists():
-            return []
-        with self.path.open('rb') as f:
-            f.seek(self._offset)
-            data = f.read()
-        end = data.rfind(b'\n') + 1
-        self._offset += end
-        new = [json.loads(line) for line in data[:end].splitlines() if line.strip()]
-        if new:
-            self.records.extend(new)
-            self.changed = time.monotonic()
-        return new
-
-
-class _Tracker:
-    """The supervisor's events so far: the node's pid and state, the replacement's spawn."""
-
-    def __init__(self) -> None:
-        self.pid: int | None = None
-        self.state = ''
-        self.respawned: float | None = None  # monotonic
-        self.running_since = 0.0
-
-    def feed(self, events: list[dict[str, Any]]) -> None:
-        for ev in events:
-            if ev['kind'] == 'spawn':
-                self.pid = int(ev['pid'])
-                if ev.get('mode') == 'recover' and self.respawned is None:
-                    self.respawned = time.monotonic()
-            elif ev['kind'] == 'state':
-                self.state = ev['new']
-                if ev['new'] == 'RUNNING':
-                    self.running_since = time.monotonic()
-
-
 class _Observed:
     """What the observer on the node's host wrote: the node's state, /e_stop, /numbers."""
 
     def __init__(self, path: Path) -> None:
-        self.file = _Follow(path)
+        self.file = EventsFile(path)
         self.ready = False
         self.state: dict[str, Any] = {}
         self.e_stop: list[tuple[float, bool]] = []
@@ -215,8 +178,8 @@ def run_on_hosts(
     assert env['FASTDDS_BUILTIN_TRANSPORTS'] == 'UDPv4'
     python = sys.executable
     observed = _Observed(workdir / 'observed.jsonl')
-    events = _Follow(store / 'events.jsonl')
-    tracker = _Tracker()
+    events = EventsFile(store / 'events.jsonl')
+    tracker = EventTracker()
     deadline = time.monotonic() + timeout
     sup_log = workdir / f'supervisor-{method}.log'
     kills: list[tuple[str, float]] = []
@@ -268,8 +231,8 @@ def run_on_hosts(
                     and now - started >= kill_at and tracker.pid is not None):
                 os.kill(tracker.pid, signal.SIGKILL)
                 kills.append((f'at {kill_at:g} s', now))
-            if outage is not None and kills and tracker.respawned is not None:
-                down_at = down_at or tracker.respawned + outage.after_respawn
+            if outage is not None and kills and tracker.first_respawned_at is not None:
+                down_at = down_at or tracker.first_respawned_at + outage.after_respawn
                 if 'down' not in link and now >= down_at:
                     hosts.link_down(publisher_host)
                     link['down'] = time.time()
@@ -301,10 +264,10 @@ def run_on_hosts(
         method=method,
         expected=count,
         state=observed.state,
-        recoveries=[e for e in events.records if e['kind'] == 'recovered'],
+        recoveries=[e for e in events.events if e['kind'] == 'recovered'],
         kills=kills,
         e_stop=observed.e_stop,
-        events=events.records,
+        events=events.events,
         log=sup_log.read_text(),
     )
     return HostRun(

@@ -275,15 +275,18 @@ class _Observer:
         self.context.try_shutdown()
 
 
-class _Events:
-    """Follows the supervisor's events.jsonl."""
+class EventsFile:
+    """Follows a JSON-lines file another process appends to (the supervisor's events.jsonl,
+    an observer's output); whole lines only."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self.events: list[dict[str, Any]] = []
+        self.changed = time.monotonic()  # when the last record came
         self._offset = 0
 
     def poll(self) -> list[dict[str, Any]]:
+        """The records appended since the last poll (also kept in :attr:`events`)."""
         if not self.path.exists():
             return []
         with self.path.open('rb') as f:
@@ -292,7 +295,9 @@ class _Events:
         end = data.rfind(b'\n') + 1
         self._offset += end
         new = [json.loads(line) for line in data[:end].splitlines() if line.strip()]
-        self.events.extend(new)
+        if new:
+            self.events.extend(new)
+            self.changed = time.monotonic()
         return new
 
 
@@ -340,8 +345,8 @@ def run(
     # This process joins the run too (the observer): same discovery settings as the others.
     with joining(domain_id):
         observer = _Observer(domain_id, program.state_topic)
-    events = _Events(store / 'events.jsonl')
-    tracker = _Tracker()
+    events = EventsFile(store / 'events.jsonl')
+    tracker = EventTracker()
     kills_done: list[tuple[str, float]] = []
     pending = list(kills)
     deadline = time.monotonic() + timeout
@@ -416,23 +421,28 @@ def run(
     )
 
 
-class _Tracker:
-    """What the events say so far: the node's pid and state, checkpoints, replay start."""
+class EventTracker:
+    """What the supervisor's events say so far: the node's pid and state, checkpoints, replay
+    start, the replacements' spawns (monotonic times of when this tracker was fed them)."""
 
     def __init__(self) -> None:
         self.pid: int | None = None
         self.state = ''
         self.checkpoints = 0
         self.replaying_since: float | None = None
-        self.respawned_at: float | None = None
+        self.respawned_at: float | None = None  # the latest recovery's spawn
+        self.first_respawned_at: float | None = None
         self.running_since = 0.0
 
     def feed(self, new: list[dict[str, Any]]) -> None:
+        """Take in newly read events."""
         for ev in new:
             if ev['kind'] == 'spawn':
                 self.pid = int(ev['pid'])
                 if ev.get('mode') == 'recover':
                     self.respawned_at = time.monotonic()
+                    if self.first_respawned_at is None:
+                        self.first_respawned_at = self.respawned_at
             elif ev['kind'] == 'checkpoint':
                 self.checkpoints += 1
             elif ev['kind'] == 'state':

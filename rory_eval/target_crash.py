@@ -20,13 +20,13 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import yaml
 
 from rory_eval.evaluation.plan import TARGETS as EVAL_TARGETS
 from rory_eval.evaluation.runner import Killer
-from rory_eval.simrun import REPO, SimRun, exit_on_sigterm
+from rory_eval.simrun import REPO, SimRun, exit_on_sigterm, store_events
 
 
 @dataclass(frozen=True)
@@ -112,27 +112,54 @@ class Comparison:
                 and self.missing_after_release == 0)
 
 
-def run_under_rory(target: Target, world: str, out: Path, *, domain_id: int, duration: float,
-                   kill_at: float | None) -> tuple[dict[int, bytes], list[dict[str, Any]]]:
-    """One run; the serialized pose messages by stamp (ns), and the supervisor's events."""
-    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-    from rclpy.serialization import serialize_message
+class Fault(Protocol):
+    """What strikes the node during a run (a Killer, target_faults' striker): a thread."""
 
-    out.mkdir(parents=True, exist_ok=True)
+    def start(self) -> None:
+        """Begin watching the run (it waits for the simulator's clock itself)."""
+
+    def stop(self) -> None:
+        """Stop striking; called when the run is over, however it ended."""
+
+
+def instrument(target: Target, inst: Path) -> Path:
+    """``rory instrument`` the target's folder into ``inst`` unless it is there already."""
     source = REPO / 'targets' / target.name
-    inst = out / 'inst'
-    if not inst.exists():
+    if not (inst / target.node_file).exists():
         subprocess.run([sys.executable, '-m', 'rory_instrument', str(source), '--vars',
                         str(source / 'keyvars.yaml'), '-o', str(inst)], check=True,
                        capture_output=True)
-    argv = target.argv(world)
-    command = ['python', str(inst / target.node_file), *argv[2:]]
+    return inst
+
+
+def run_supervised(target: Target, world: str, out: Path, *, domain_id: int, duration: float,
+                   command: Sequence[str], settings: dict[str, Any] | None = None,
+                   fault: Fault | None = None) -> tuple[dict[int, bytes], list[dict[str, Any]]]:
+    """One run of the target under ``rory supervise`` (method rory, checkpoints every 2 s,
+    fast replay) in the simulator, with ``fault`` striking it meanwhile.
+
+    Args:
+        target: The target.
+        world: The simulator's world.
+        out: The run's folder: ``supervise.yaml``, ``store/``, ``run/`` (the simulator's).
+        domain_id: ROS domain of the run.
+        duration: Sim seconds.
+        command: The node's command line, as the supervisor starts it.
+        settings: More of the node's supervisor settings.
+        fault: Started before the run, stopped after it.
+
+    Returns:
+        The serialized pose messages by stamp (ns), and the supervisor's events.
+    """
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from rclpy.serialization import serialize_message
+
     store = out / 'store'
     config = out / 'supervise.yaml'
     # No safe state: /e_stop would stop the simulator's driver and change every later input.
     config.write_text(yaml.safe_dump({
-        'nodes': [{'name': target.name, 'command': command, 'method': 'rory',
-                   'checkpoint_interval': 2.0, 'replay': 'fast'}],
+        'nodes': [{'name': target.name, 'command': list(command), 'method': 'rory',
+                   'checkpoint_interval': 2.0, 'replay': 'fast', **(settings or {})}],
         'store': str(store),
     }))
     # The clock waits for the node and RORY's ring to subscribe its inputs, then one more
@@ -144,22 +171,31 @@ def run_under_rory(target: Target, world: str, out: Path, *, domain_id: int, dur
                                 str(config)])
     msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped
     run.record(target.pose_topic, msg_type, qos=1000)
-    killer = None
-    if kill_at is not None:
-        killer = Killer(out / 'run' / 'sim.log', world, store, kill_at)
-        killer.start()
+    if fault is not None:
+        fault.start()
     try:
         result = run.run()
     finally:
-        if killer is not None:
-            killer.stop()
+        if fault is not None:
+            fault.stop()
     by_stamp: dict[int, bytes] = {}
     for msg in result.messages[target.pose_topic]:
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         by_stamp[stamp] = bytes(serialize_message(msg))
-    events_path = store / 'events.jsonl'
-    events = [json.loads(line) for line in events_path.read_text().splitlines() if line.strip()]
-    return by_stamp, events
+    return by_stamp, store_events(store)
+
+
+def run_under_rory(target: Target, world: str, out: Path, *, domain_id: int, duration: float,
+                   kill_at: float | None) -> tuple[dict[int, bytes], list[dict[str, Any]]]:
+    """One run, SIGKILLed at ``kill_at`` sim seconds unless None; as :func:`run_supervised`."""
+    out.mkdir(parents=True, exist_ok=True)
+    inst = instrument(target, out / 'inst')
+    command = ['python', str(inst / target.node_file), *target.argv(world)[2:]]
+    killer = None
+    if kill_at is not None:
+        killer = Killer(out / 'run' / 'sim.log', world, out / 'store', kill_at)
+    return run_supervised(target, world, out, domain_id=domain_id, duration=duration,
+                          command=command, fault=killer)
 
 
 def compare(reference: dict[int, bytes], crashed: dict[int, bytes],

@@ -28,7 +28,6 @@ import os
 import random
 import shutil
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -38,11 +37,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from rory_eval.flaky.inject import HANG_FLAG, RAISE_FLAG
-from rory_eval.simrun import REPO, SimRun, exit_on_sigterm, store_events, wait_for_clock
-from rory_eval.target_crash import TARGETS, Comparison, Target, compare, sensor_readers
+from rory_eval.simrun import REPO, exit_on_sigterm, store_events, wait_for_clock
+from rory_eval.target_crash import (
+    TARGETS,
+    Comparison,
+    Target,
+    compare,
+    instrument,
+    run_supervised,
+)
 
 FAULTS = ('SIGKILL', 'SIGSEGV', 'raise', 'hang')
 WORLDS = ('office_small', 'workshop', 'real_room')
@@ -171,17 +175,9 @@ def run_target(target: Target, world: str, out: Path, *, domain_id: int,
                instrumented: Path | None = None) -> tuple[dict[int, bytes], list[dict[str, Any]],
                                                           _Striker | None]:
     """One run under RORY with the fault injector; pose messages by stamp, events, striker."""
-    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-    from rclpy.serialization import serialize_message
-
     out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    source = REPO / 'targets' / target.name
-    inst = instrumented or out / 'inst'
-    if not (inst / target.node_file).exists():
-        subprocess.run([sys.executable, '-m', 'rory_instrument', str(source), '--vars',
-                        str(source / 'keyvars.yaml'), '-o', str(inst)], check=True,
-                       capture_output=True)
+    inst = instrument(target, instrumented or out / 'inst')
     store = out / 'store'
     # A store left by an earlier campaign in the same folder would be recovered from (that is
     # what a store is for): every run starts from none.
@@ -189,38 +185,17 @@ def run_target(target: Target, world: str, out: Path, *, domain_id: int,
         shutil.rmtree(old, ignore_errors=True)
     for flag in (RAISE_FLAG, HANG_FLAG):
         (out / flag).unlink(missing_ok=True)
-    config = out / 'supervise.yaml'
     command = ['python', '-m', 'rory_eval.flaky.inject', str(inst / target.node_file),
                *target.argv(world)[2:]]
-    # No safe state: /e_stop would stop the simulator's driver and change every later input.
-    config.write_text(yaml.safe_dump({
-        'nodes': [{'name': target.name, 'command': command, 'method': 'rory',
-                   'checkpoint_interval': 2.0, 'replay': 'fast',
-                   'hang_timeout': HANG_TIMEOUT,
-                   # rory_eval must be importable from the node's folder (out/).
-                   'env': {'PYTHONPATH': str(REPO)}}],
-        'store': str(store),
-    }))
-    run = SimRun(world, out / 'run', domain_id=domain_id, duration=duration, depth=target.depth,
-                 wait_for=sensor_readers(target), sim_args=['--start-delay', '1.0'])
-    run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
-                                str(config)])
-    msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped
-    run.record(target.pose_topic, msg_type, qos=1000)
+    settings = {'hang_timeout': HANG_TIMEOUT,
+                # rory_eval must be importable from the node's folder (out/).
+                'env': {'PYTHONPATH': str(REPO)}}
     striker = None
     if case is not None:
         striker = _Striker(case, out / 'run' / 'sim.log', world, out, store)
-        striker.start()
-    try:
-        result = run.run()
-    finally:
-        if striker is not None:
-            striker.stop()
-    by_stamp = {}
-    for msg in result.messages[target.pose_topic]:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        by_stamp[stamp] = bytes(serialize_message(msg))
-    return by_stamp, store_events(store), striker
+    by_stamp, events = run_supervised(target, world, out, domain_id=domain_id, duration=duration,
+                                      command=command, settings=settings, fault=striker)
+    return by_stamp, events, striker
 
 
 def run_case(case: Case, reference: dict[int, bytes], out: Path, *, domain_id: int,

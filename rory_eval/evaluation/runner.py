@@ -38,7 +38,7 @@ import numpy as np
 import yaml
 
 from rory_eval.evaluation.plan import BARE, TARGETS, Kind, RunSpec, TargetSpec
-from rory_eval.simrun import LATCHED, REPO, SimRun, SimRunResult
+from rory_eval.simrun import LATCHED, REPO, SimRun, SimRunResult, store_events, wait_for_clock
 
 RECORD = 'record.json'
 KILL_TIMEOUT = 120.0  # s to wait for the clock before giving up on the kill
@@ -162,10 +162,8 @@ def execute(spec: RunSpec, out: Path, *, domain_id: int, instrumented: Path) -> 
         record.error = f'{type(exc).__name__}: {exc}'
         (out / 'error.txt').write_text(traceback.format_exc())
     record.wall_seconds = time.monotonic() - started
-    store = out / 'store' / 'events.jsonl'
-    if store.exists():
-        record.events = [e for e in _events(store)
-                         if e.get('kind') in ('recovered', 'exit', 'fatal', 'spawn')]
+    record.events = [e for e in store_events(out / 'store')
+                     if e.get('kind') in ('recovered', 'exit', 'fatal', 'spawn')]
     record.save(out)
     return record
 
@@ -277,16 +275,6 @@ def _keep(result: SimRunResult, record: RunRecord, target: TargetSpec, pose_topi
         np.save(out / 'final_model.npy', points)
 
 
-def _events(path: Path) -> list[dict[str, Any]]:
-    out = []
-    for line in path.read_text(errors='replace').splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue  # a line cut by the stop
-    return out
-
-
 class Killer(threading.Thread):
     """SIGKILLs the supervised node ``crash_at`` seconds after the simulator's clock starts."""
 
@@ -298,16 +286,14 @@ class Killer(threading.Thread):
         self._finish = threading.Event()
 
     def run(self) -> None:
-        deadline = time.monotonic() + KILL_TIMEOUT
-        while not self._running():
-            if self._finish.wait(0.05) or time.monotonic() > deadline:
-                self.error = 'the clock never started'
-                return
+        if not wait_for_clock(self.sim_log, self.world, self._finish, KILL_TIMEOUT):
+            self.error = 'the clock never started'
+            return
         clock_start = time.monotonic()
         if self._finish.wait(self.crash_at):
             self.error = 'the run ended before the crash time'
             return
-        spawns = [e for e in _events(self.store / 'events.jsonl') if e.get('kind') == 'spawn']
+        spawns = [e for e in store_events(self.store) if e.get('kind') == 'spawn']
         if not spawns:
             self.error = 'the supervisor never started the node'
             return
@@ -317,10 +303,6 @@ class Killer(threading.Thread):
             self.error = f'node pid {spawns[-1]["pid"]} was already gone'
             return
         self.killed_at = time.monotonic() - clock_start
-
-    def _running(self) -> bool:
-        return (self.sim_log.exists()
-                and f'{self.world}: running (seed' in self.sim_log.read_text(errors='replace'))
 
     def stop(self) -> None:
         self._finish.set()

@@ -16,9 +16,9 @@ import pytest
 
 from rory_eval.scenario import (
     EXAMPLE,
-    _Events,
+    EventsFile,
+    EventTracker,
     _Observer,
-    _Tracker,
     child_process,
     joining,
     prepare,
@@ -59,8 +59,8 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
     env = scenario_env(ros_domain)
     with joining(ros_domain):
         observer = _Observer(ros_domain)
-    events = _Events(store / 'events.jsonl')
-    tracker = _Tracker()
+    events = EventsFile(store / 'events.jsonl')
+    tracker = EventTracker()
     publisher = [sys.executable, str(EXAMPLE / 'count_publisher.py')]
 
     def history() -> list[int]:
@@ -121,8 +121,8 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
         with child_process([*SUPERVISE, str(config)], env, workdir, log3) as sup3:
             _wait('the old run set aside', (store / '.previous' / 'events.jsonl').exists, 30,
                   log3, sup3)
-            fresh_events = _Events(store / 'events.jsonl')
-            fresh = _Tracker()
+            fresh_events = EventsFile(store / 'events.jsonl')
+            fresh = EventTracker()
 
             def fresh_running() -> bool:
                 fresh.feed(fresh_events.poll())

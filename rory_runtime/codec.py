@@ -199,6 +199,10 @@ class Snapshot:
         self._arrays = arrays
 
 
+_Spares = dict[tuple[str, tuple[int, ...]], list[np.ndarray[Any, np.dtype[Any]]]]
+"""Spare buffers by (dtype string, shape)."""
+
+
 class ArrayPool:
     """Buffers for the array copies of the next snapshot: those of the last one packed.
 
@@ -212,8 +216,8 @@ class ArrayPool:
     the last :meth:`refill` gave it), so arrays that change shape or go away are let go.
     Buffers are matched by dtype and shape only.
 
-    Thread use: :meth:`take` on the thread that takes snapshots, :meth:`refill` on the one
-    that packs them; each swaps or pops one dict entry, which the GIL keeps whole. A buffer
+    Thread use: :meth:`take` on the thread that takes snapshots, :meth:`refill` and
+    :meth:`prime` on the one that packs them; those build a new dict and swap it in whole. A buffer
     is only ever given to a new snapshot after the snapshot that had it was packed.
     """
 
@@ -221,18 +225,16 @@ class ArrayPool:
     """Arrays below this are copied into new memory: their faults cost next to nothing."""
 
     def __init__(self) -> None:
-        self._spare: dict[tuple[str, tuple[int, ...]], list[np.ndarray[Any, np.dtype[Any]]]] = {}
+        self._spare: _Spares = {}
 
     def take(self, dtype: str, shape: tuple[int, ...]) -> np.ndarray[Any, np.dtype[Any]] | None:
         """A spare C-order buffer of that dtype and shape, or None.
 
         Which variable it held last does not matter: the copy overwrites all of it.
         """
+        # Only this thread pops; a refill builds new lists and swaps the dict whole.
         spares = self._spare.get((dtype, shape))
-        try:
-            return spares.pop() if spares else None
-        except IndexError:  # emptied meanwhile (a refill swapped the dict under us)
-            return None
+        return spares.pop() if spares else None
 
     def prime(self, values: Mapping[str, object]) -> None:
         """Fault in buffers for the large top-level arrays among ``values``, if the pool is
@@ -243,7 +245,7 @@ class ArrayPool:
         """
         if self._spare:
             return
-        spare: dict[tuple[str, tuple[int, ...]], list[np.ndarray[Any, np.dtype[Any]]]] = {}
+        spare: _Spares = {}
         for value in list(values.values()):
             if (type(value) is np.ndarray and value.dtype.kind in _NUMERIC_KINDS
                     and value.nbytes >= self.MIN_BYTES):
@@ -258,7 +260,7 @@ class ArrayPool:
 
         Call only after :func:`pack_snapshot` returned (or gave up) on it.
         """
-        spare: dict[tuple[str, tuple[int, ...]], list[np.ndarray[Any, np.dtype[Any]]]] = {}
+        spare: _Spares = {}
         for array in snapshot._arrays:
             if array.data.nbytes >= self.MIN_BYTES:
                 spare.setdefault((array.dtype, array.data.shape), []).append(array.data)

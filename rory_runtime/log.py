@@ -110,6 +110,8 @@ class LogEntry:
         source_ns: Publisher's source timestamp (ns); the MCAP ``publish_time``.
         seq: Publisher sequence number truncated to u32; the MCAP ``sequence``.
         data: CDR bytes exactly as received.
+        publisher: The writer's GID, where the reader knew it (the supervisor's ring does;
+            a log segment does not keep it).
 
     """
 
@@ -119,6 +121,7 @@ class LogEntry:
     source_ns: int
     seq: int
     data: bytes
+    publisher: bytes | None = None
 
     @property
     def ident(self) -> tuple[int, int]:

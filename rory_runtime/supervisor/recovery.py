@@ -46,6 +46,7 @@ from ..protocol import (
     pack_release,
 )
 from ..store import CheckpointStore
+from .lineage import Admission, InputGap, SequenceWatch, Verdict
 from .ring import Ring
 from .safety import SafeState
 from .states import LOG_PREFIX
@@ -73,100 +74,80 @@ def absorbed_identities(
     return known
 
 
-@dataclass(frozen=True)
-class InputGap:
-    """Publication sequence numbers of an input that never reached this host."""
-
-    topic: str
-    first: int
-    last: int
-    seen_after_ns: int  # receive time of the message after the gap
-    # Publishers the ring's reader was matched with when it saw the gap (-1: unknown). With
-    # one, the numbers are that publisher's alone; judged then, not when the gap is reported
-    # (by then the publisher may have finished and left).
-    publishers: int = -1
-
-    @property
-    def missing(self) -> int:
-        """How many messages."""
-        return self.last - self.first + 1
-
-    def to_json(self) -> dict[str, Any]:
-        """For events.jsonl."""
-        return {'topic': self.topic, 'first': self.first, 'last': self.last,
-                'missing': self.missing}
-
-
 class RecoveryLog:
     """R: what arrived for the node since its crash (and the ring's backlog), as a segment.
 
-    Entries added after :meth:`seal` are the post-release relay: the node logs those itself.
+    A :class:`~.ring.RingSink`. What enters it is decided by :class:`~.lineage.Admission`
+    alone. Entries added after :meth:`seal` are the post-release relay: the node logs those
+    itself.
     """
 
     def __init__(self, segments: SegmentStore, known: dict[str, set[MessageId]],
                  offered_qos: Callable[[str], Sequence[Qos]] | None = None,
                  publishers: Callable[[str], int] | None = None) -> None:
         self._offered_qos = offered_qos
-        self._publishers = publishers
         self.number = segments.next_number()
         self._writer: SegmentWriter | None = segments.open(self.number)
-        self._known = known
+        # What the node last logged per topic, before R (for the summary and the gap check).
+        self._seeded = {topic: max(seq for _, seq in ids) for topic, ids in known.items()
+                        if ids}
+        self.admission = Admission(known)
+        self._sequence = SequenceWatch(publishers)
         self.entries: list[LogEntry] = []
         # Consumed from the front by the streamer, so a topic that never switches back to its
         # live reader does not make this grow.
         self.relay: deque[LogEntry] = deque()
         self.sealed = False
         self.cond = threading.Condition()
-        self.dropped_known = 0
-        # Sequence numbers per topic, to see messages that never reached this host (a link
-        # outage longer than the DDS lease drops the readers; a re-matched volatile reader gets
-        # nothing of what was sent meanwhile). Seeded with what the node last logged.
-        self._last_seq = {topic: max(seq for _, seq in ids) for topic, ids in known.items()
-                          if ids}
-        self._seeded = dict(self._last_seq)
-        self.gaps: list[InputGap] = []
+
+    @property
+    def gaps(self) -> list[InputGap]:
+        """Sequence numbers that never reached this host (caller holds :attr:`cond`)."""
+        return self._sequence.gaps
+
+    @property
+    def dropped_known(self) -> int:
+        """Messages skipped because the node already had them."""
+        return self.admission.dropped_known
+
+    def add_backlog(self, entries: list[LogEntry]) -> None:
+        """Record what the ring held at its activation, in receive order."""
+        with self.cond:
+            self.admission.learn(entries)
+            self._sequence.seed(self.admission, self._seeded, entries)
+            for entry in entries:
+                self._admit(entry)
+            self.cond.notify_all()
 
     def add(self, entry: LogEntry) -> None:
         """Record one message (called from the ring's thread)."""
         with self.cond:
-            seen = self._known.setdefault(entry.topic, set())
-            known = entry.ident in seen
-            self._track(entry, known)
-            if known:
-                self.dropped_known += 1
-                return
-            seen.add(entry.ident)
-            if self.sealed:
-                self.relay.append(entry)
-            else:
-                assert self._writer is not None
-                try:
-                    qos = self._offered_qos
-                    self._writer.write(
-                        entry.topic, entry.msgtype, entry.recv_ns, entry.source_ns, entry.seq,
-                        entry.data,
-                        offered_qos=None if qos is None else lambda: qos(entry.topic),
-                    )
-                except LogError as err:
-                    _logger.error('%s recovery log: %s', LOG_PREFIX, err)
-                self.entries.append(entry)
+            self._admit(entry)
             self.cond.notify_all()
 
-    def _track(self, entry: LogEntry, known: bool) -> None:
-        last = self._last_seq.get(entry.topic)
-        if last is not None and entry.seq <= last:
-            if not known:  # a new writer (restarted publisher) or a second publisher
-                self._last_seq[entry.topic] = entry.seq
+    def _admit(self, entry: LogEntry) -> None:
+        verdict = self.admission.judge(entry)
+        self._sequence.track(entry, verdict)
+        if verdict != Verdict.NEW:
             return
-        if last is not None and entry.seq > last + 1 and not known:
-            count = -1 if self._publishers is None else self._publishers(entry.topic)
-            self.gaps.append(
-                InputGap(entry.topic, last + 1, entry.seq - 1, entry.recv_ns, count)
+        if self.sealed:
+            self.relay.append(entry)
+            return
+        assert self._writer is not None
+        try:
+            qos = self._offered_qos
+            self._writer.write(
+                entry.topic, entry.msgtype, entry.recv_ns, entry.source_ns, entry.seq,
+                entry.data,
+                offered_qos=None if qos is None else lambda: qos(entry.topic),
             )
-        self._last_seq[entry.topic] = entry.seq
+        except LogError as err:
+            _logger.error('%s recovery log: %s', LOG_PREFIX, err)
+        self.entries.append(entry)
 
     def summary(self) -> dict[str, dict[str, int | None]]:
-        """Per topic: the last sequence number logged before R, and what R itself holds.
+        """Per topic: the last sequence number logged before R, what R itself holds, and how
+        many messages were dropped as never delivered to the node.
 
         Goes into the ``recovered`` event, so that a loss found later can be placed: before
         R (the logs), inside it, or after it (the handover).
@@ -175,21 +156,23 @@ class RecoveryLog:
             held: dict[str, list[int]] = {}
             for entry in self.entries:
                 held.setdefault(entry.topic, []).append(entry.seq)
-            topics = sorted(set(held) | set(self._seeded))
+            never = self.admission.never_delivered
+            topics = sorted(set(held) | set(self._seeded) | set(never))
             return {
                 topic: {
                     'logged_through': self._seeded.get(topic),
                     'entries': len(held.get(topic, ())),
                     'first_seq': min(held[topic]) if topic in held else None,
                     'last_seq': max(held[topic]) if topic in held else None,
+                    'never_delivered': len(never.get(topic, ())),
                 }
                 for topic in topics
             }
 
-    def add_many(self, entries: list[LogEntry]) -> None:
-        """Record a backlog, already in receive order."""
-        for entry in entries:
-            self.add(entry)
+    def never_delivered(self) -> dict[str, dict[str, Any]]:
+        """Per topic, messages dropped as never delivered (:class:`~.lineage.Admission`)."""
+        with self.cond:
+            return self.admission.never_delivered_summary()
 
     def seal(self) -> None:
         """Close the segment: from now on entries are relayed, not part of the log."""
@@ -383,8 +366,9 @@ class Recovery:
                 self.segments, absorbed_identities(self.checkpoints, self.segments),
                 self.ring.offered_qos, self.ring.publisher_count,
             )
-            self.ring.activate(self.rlog.add, early)
-        self.timings.s2_done = time.monotonic()
+            self.ring.activate(self.rlog, early)
+        if self.timings.s2_done is None:  # a later crash of the same recovery is not S2 time
+            self.timings.s2_done = time.monotonic()
 
     def again(self, crashed: float) -> None:
         """The replacement died before release: same recovery, next process."""
@@ -451,6 +435,10 @@ class Recovery:
     def r_summary(self) -> dict[str, dict[str, int | None]]:
         """What R holds per topic (:meth:`RecoveryLog.summary`); empty without R."""
         return {} if self.rlog is None else self.rlog.summary()
+
+    def never_delivered(self) -> dict[str, dict[str, Any]]:
+        """Messages R dropped as never delivered to the node, per topic; empty without R."""
+        return {} if self.rlog is None else self.rlog.never_delivered()
 
     def on_switched(self, topic: str) -> bool:
         """A topic is live again; stop relaying it. Returns True when every topic is."""

@@ -5,30 +5,37 @@ not yet applied, and everything published while it is down, would be lost; the *
 For each input topic of a supervised node the supervisor keeps a reader with the node's QoS and
 a keep-last history of :func:`~rory_runtime.protocol.ring_depth` messages.
 
-Passive, the ring costs next to nothing: its readers belong to rclpy nodes that no executor
-spins, so DDS keeps the last N messages and no Python runs per message (measured: a passive
-reader 0.4% of a core at 60 msg/s against 2.3% for a spinning one). At a crash the ring is
-*activated*: everything it holds is taken at once, then new messages are taken as they come,
-until the node's live subscription has taken over that topic again.
+Passive, the ring costs next to nothing: nothing takes from its readers, so DDS keeps the last N
+messages and no Python runs per message (measured: a passive reader 0.4% of a core at 60 msg/s
+against 2.3% for a spinning one). At a crash the ring is *activated*: everything it holds is
+taken at once, then new messages are taken as they come, until the node's live subscription
+has taken over that topic again.
+
+The ring takes with :mod:`.rcl_take`, not rclpy's ``take_message``, because it needs each
+message's publisher GID: the recovery log keeps, per publisher, only what lies above what the
+node logged (docs/architecture.md, "The invariant"). So no rclpy executor spins the ring's
+readers; one thread waits on the active ones (:class:`RingContext`).
 
 The ring's nodes share the supervisor's rclpy context, and so its DDS participant (rclpy has one
 participant per context). A participant of its own cost an idle supervisor 8 more threads,
-2 MB of PSS and 0.27 % of a core (0.70 against 0.43 %: ``python -m
-rory_eval.ring_participant_bench``), and every other participant on the robot one more peer to
-announce to and track. Only the ring's own executor, on its own thread, ever spins them.
+2 MB of PSS and 0.27 % of a core (``python -m rory_eval.ring_participant_bench``), and every
+other participant on the robot one more peer to announce to and track.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable
-from typing import Any
+from collections.abc import Iterable
+from typing import Any, Protocol
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.exceptions import InvalidHandle
+from rclpy.guard_condition import GuardCondition
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -37,17 +44,41 @@ from rosbags.interfaces import Qos
 
 from ..log import LogEntry
 from ..msgtypes import get_message_class
-from ..protocol import InputSpec, message_id, ring_depth
+from ..protocol import SEQ_MASK, InputSpec, ring_depth
 from ..qos import offered_qos
 from ..threads import name_this_thread
+from .rcl_take import SerializedTaker, Taken
 
 _logger = logging.getLogger('rory.supervisor')
 
-Sink = Callable[[LogEntry], None]
+_WAIT_NS = 1_000_000_000
+"""The ring thread is woken by messages and by its guard condition (activation, deactivation,
+shutdown); the timeout only re-checks the running flag."""
+
+
+class RingSink(Protocol):
+    """Where an activated ring delivers: first its backlog, as one batch, then each message."""
+
+    def add_backlog(self, entries: list[LogEntry]) -> None:
+        """What the ring held at activation, in receive order."""
+
+    def add(self, entry: LogEntry) -> None:
+        """One message taken after the backlog (called from the ring's thread)."""
+
+
+class Capture(list[LogEntry]):
+    """A sink that keeps everything, in order (the supervisor's early capture of a stalled
+    node's inputs; tests)."""
+
+    def add_backlog(self, entries: list[LogEntry]) -> None:
+        self.extend(entries)
+
+    def add(self, entry: LogEntry) -> None:
+        self.append(entry)
 
 
 class RingContext:
-    """The rclpy context, executor and thread shared by all rings of one supervisor.
+    """The rclpy context and the taking thread shared by all rings of one supervisor.
 
     Args:
         context: the supervisor's context, whose participant the ring's readers join; it stays
@@ -66,27 +97,71 @@ class RingContext:
                 signal_handler_options=SignalHandlerOptions.NO,
             )
         self.context = context
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self._active: list[RingTopic] = []
+        self._lock = threading.Lock()
+        self._guard = GuardCondition(None, None, context=context)
         self._running = True
         self._thread = threading.Thread(target=self._spin, name='rory-ring', daemon=True)
         self._thread.start()
 
+    def watch(self, topic: RingTopic) -> None:
+        """Take ``topic``'s messages as they come."""
+        with self._lock:
+            if topic not in self._active:
+                self._active.append(topic)
+        self._guard.trigger()
+
+    def unwatch(self, topic: RingTopic) -> None:
+        """Stop taking ``topic``'s messages (DDS keeps its history again)."""
+        with self._lock:
+            if topic in self._active:
+                self._active.remove(topic)
+        self._guard.trigger()
+
     def _spin(self) -> None:
         name_this_thread('rory-ring')
         while self._running and self.context.ok():
+            with self._lock:
+                readers = list(self._active)
             try:
-                # Woken by work and by shutdown(); the timeout only re-checks the flag.
-                self.executor.spin_once(timeout_sec=1.0)
+                self._wait_and_take(readers)
             except Exception:
                 if self._running:
-                    _logger.exception('[rory] ring executor error')
+                    _logger.exception('[rory] ring error')
+
+    def _wait_and_take(self, readers: list[RingTopic]) -> None:
+        with contextlib.ExitStack() as held:
+            handles = []
+            for reader in readers:
+                try:
+                    held.enter_context(reader.sub.handle)
+                except InvalidHandle:
+                    continue  # destroyed meanwhile
+                handles.append(reader)
+            held.enter_context(self._guard.handle)
+            context_handle: Any = self.context.handle  # rclpy's annotation allows None
+            held.enter_context(context_handle)
+            wait_set = _rclpy.WaitSet(len(handles), 1, 0, 0, 0, 0, self.context.handle)
+            wait_set.clear_entities()
+            for reader in handles:
+                wait_set.add_subscription(reader.sub.handle)
+            wait_set.add_guard_condition(self._guard.handle)
+            wait_set.wait(_WAIT_NS)
+            if not self._running:
+                return
+            ready = wait_set.get_ready_entities('subscription')
+            for reader in handles:
+                if reader.sub.handle.pointer in ready:
+                    reader.take_new()
 
     def shutdown(self) -> None:
         """Stop the thread and the context."""
         self._running = False
-        self.executor.wake()
+        with contextlib.suppress(InvalidHandle):
+            self._guard.trigger()
         self._thread.join(timeout=2.0)
-        self.executor.shutdown(timeout_sec=1.0)
+        with contextlib.suppress(InvalidHandle):
+            self._guard.destroy()
         if self._owns_context and self.context.ok():
             self.context.try_shutdown()
 
@@ -98,9 +173,9 @@ class RingTopic:
         self.spec = spec
         self.depth = ring_depth(spec)
         self._ctx = ring_ctx
-        self._msg_type = get_message_class(spec.msgtype)
-        # One rclpy node per topic, so that activating a topic means adding just its node to the
-        # executor; the other topics stay passive.
+        msg_type = get_message_class(spec.msgtype)
+        # One rclpy node per topic: its own place in the graph, for the publisher count and
+        # the offered QoS; nothing spins it.
         self.node = Node(f'_rory_ring_{node_id}_{index}', context=ring_ctx.context)
         qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
@@ -114,89 +189,99 @@ class RingTopic:
                 else DurabilityPolicy.VOLATILE
             ),
         )
-        # rclpy's annotation omits the (msg, info) form; it checks the signature at run time.
-        on_message: Any = self._on_message
+        # Never called: no executor spins this node; the ring takes with rcl_take. (rclpy's
+        # annotation omits the (msg, info) form; it checks the signature at run time.)
+        never_called: Any = _never_called
         self.sub: Subscription = self.node.create_subscription(
-            self._msg_type, spec.topic, on_message, qos, raw=True
+            msg_type, spec.topic, never_called, qos, raw=True
         )
-        # Entries taken while active; with what DDS still holds, they are "the last N".
+        self._taker = SerializedTaker()
+        # Entries taken while active. DDS no longer holds them, so the next activation gets
+        # them from here; with what DDS holds, the newest ``depth`` are "the last N".
         self.retained: deque[LogEntry] = deque(maxlen=self.depth)
-        self._sink: Sink | None = None
+        self._sink: RingSink | None = None
+        self._deliver: Any = None
         self._lock = threading.Lock()
         self.active = False
 
-    def _entry(self, raw: bytes, info: dict[str, Any]) -> LogEntry:
-        source_ns, seq = message_id(info)
+    def _entry(self, taken: Taken) -> LogEntry:
         return LogEntry(
             topic=self.spec.topic,
             msgtype=self.spec.msgtype,
-            recv_ns=int(info['received_timestamp']),
-            source_ns=source_ns,
-            seq=seq,
-            data=bytes(raw),
+            recv_ns=taken.received_ns,
+            source_ns=taken.source_ns,
+            seq=taken.seq & SEQ_MASK,
+            data=taken.data,
+            publisher=taken.publisher,
         )
 
-    def _on_message(self, raw: bytes, info: dict[str, Any]) -> None:
-        entries = [self._entry(raw, info)]
+    def take_new(self) -> None:
+        """Take what DDS holds now and deliver it (the ring's thread, while active)."""
         with self._lock:
-            # Take everything already waiting, not one message per executor round (a round
-            # rebuilds the wait set, many times the cost of a take), so the reader's history
-            # is emptied as soon as this thread runs. It does not save a burst sent faster
-            # than Python takes (a publisher catching up after a stall): what exceeds the
-            # history is dropped, oldest first, by DDS itself; R's sequence check reports it.
-            entries.extend(self._take_waiting())
+            # Everything waiting, not one message per wait (a wait rebuilds the wait set, many
+            # times the cost of a take), so the history is emptied as soon as this thread
+            # runs. It does not save a burst sent faster than Python takes (a publisher
+            # catching up after a stall): what exceeds the history is dropped, oldest first,
+            # by DDS itself; R's sequence check reports it.
+            entries = self._take_waiting()
             self.retained.extend(entries)
-            sink = self._sink
-        if sink is not None:
+            deliver = self._deliver
+        if deliver is not None:
             for entry in entries:
-                sink(entry)
+                deliver(entry)
 
     def _take_waiting(self) -> list[LogEntry]:
         """Everything DDS holds for this reader now, oldest first (caller holds the lock)."""
         taken: list[LogEntry] = []
         with self.sub.handle:
-            while True:
-                message = self.sub.handle.take_message(self._msg_type, True)
-                if message is None:
-                    return taken
-                raw, info = message
-                taken.append(self._entry(raw, info))
+            while (message := self._taker.take(self.sub.handle)) is not None:
+                taken.append(self._entry(message))
+        return taken
 
     def publisher_count(self) -> int:
         """Publishers this reader is matched with."""
         return self.sub.get_publisher_count()
 
-    def activate(self, sink: Sink) -> list[LogEntry]:
-        """Take everything held now; new messages go to ``sink`` from then on.
+    def activate(self, deliver: Any) -> list[LogEntry]:
+        """Take everything held now; new messages go to ``deliver`` from then on.
 
         Returns:
-            What the ring held (retained entries and DDS's history), in receive order. The
-            caller must deliver it before anything ``sink`` receives: see :meth:`Ring.activate`.
+            The newest :attr:`depth` messages the ring has had (taken earlier while active,
+            and what DDS holds), in receive order: what a reader that was never taken from
+            would hold. Older ones were the node's long before its crash; keeping them would
+            hand the recovery messages applied outside every window it can check (issue 21's
+            duplicates). The caller must deliver them before anything ``deliver`` receives:
+            see :meth:`Ring.activate`.
         """
         with self._lock:
-            held = list(self.retained)
             taken = self._take_waiting()
             self.retained.extend(taken)
-            held.extend(taken)
-            self._sink = sink
+            held = list(self.retained)
+            self._deliver = deliver
         if not self.active:
             self.active = True
-            self._ctx.executor.add_node(self.node)
+            self._ctx.watch(self)
         held.sort(key=lambda e: e.recv_ns)
         return held
 
     def deactivate(self) -> None:
         """Back to passive: DDS keeps the history again."""
         with self._lock:
-            self._sink = None
+            self._deliver = None
         if self.active:
             self.active = False
-            self._ctx.executor.remove_node(self.node)
+            self._ctx.unwatch(self)
 
     def destroy(self) -> None:
         """Remove the reader."""
         self.deactivate()
+        with self._lock:
+            self._taker.close()
         self.node.destroy_node()
+
+
+def _never_called(_raw: bytes, _info: Any) -> None:
+    raise AssertionError('the ring takes with rcl_take; no executor spins its nodes')
 
 
 class Ring:
@@ -207,7 +292,7 @@ class Ring:
         self.node_id = node_id
         self.topics: dict[str, RingTopic] = {}
         self._order = threading.Lock()
-        self._sink: Sink | None = None
+        self._sink: RingSink | None = None
 
     def ensure(self, specs: Iterable[InputSpec]) -> None:
         """Have a reader for each input (a changed type or QoS replaces the reader)."""
@@ -233,18 +318,18 @@ class Ring:
         reader = self.topics.get(topic)
         return [] if reader is None else offered_qos(reader.node, topic)
 
-    def activate(self, sink: Sink, before: list[LogEntry] | None = None) -> None:
-        """Activate every topic: ``sink`` gets what they held, in receive order, then each new
-        message as it comes.
+    def activate(self, sink: RingSink, before: list[LogEntry] | None = None) -> None:
+        """Activate every topic: ``sink`` gets what they held, in receive order, as one backlog,
+        then each new message as it comes.
 
-        ``before``: entries an earlier activation delivered into this list (an early capture);
-        they go to ``sink`` first, read under the lock that the delivery thread takes too, so
-        none is missed between the two sinks. Repeats of them in what the ring holds reach
-        ``sink`` again (the recovery log drops known identities).
+        ``before``: entries an earlier activation delivered (an early capture); they lead the
+        backlog, read under the lock that the delivery thread takes too, so none is missed
+        between the two sinks. Repeats of them in what the ring holds reach ``sink`` again
+        (the recovery log drops known identities).
 
-        The ring's executor thread may take a new message before the backlog is delivered;
-        ``_deliver`` waits on the same lock, so nothing overtakes the backlog (under load it
-        did: a message applied before the one published just ahead of it).
+        The ring's thread may take a new message before the backlog is delivered; ``_deliver``
+        waits on the same lock, so nothing overtakes the backlog (under load it did: a message
+        applied before the one published just ahead of it).
         """
         with self._order:
             self._sink = sink
@@ -252,13 +337,12 @@ class Ring:
             for topic in self.topics.values():
                 held.extend(topic.activate(self._deliver))
             held.sort(key=lambda e: e.recv_ns)
-            for entry in held:
-                sink(entry)
+            sink.add_backlog(held)
 
     def _deliver(self, entry: LogEntry) -> None:
         with self._order:
             if self._sink is not None:
-                self._sink(entry)
+                self._sink.add(entry)
 
     def deactivate(self, topic: str | None = None) -> None:
         """Make one topic (or all) passive again."""

@@ -38,18 +38,19 @@ from ..dds import fast_rediscovery_env
 from ..errors import ProtocolError
 from ..fsutil import make_private_dir
 from ..inflight import read_beat, slot_path
-from ..log import LogEntry, SegmentStore, default_typestore
+from ..log import SegmentStore, default_typestore
 from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
 from ..threads import name_this_thread
 from .config import NodeConfig, SupervisorConfig
 from .diagnostics import NodeHealth, Reporter, age
+from .lineage import InputGap
 from .parameters import NODE_NAME as SUPERVISOR_NODE
 from .parameters import apply_parameters, own_ros_args
 from .poison import PoisonGuard
 from .process import Child, Launcher, RestartPolicy, describe_exit
-from .recovery import InputGap, Recovery
-from .ring import Ring, RingContext
+from .recovery import Recovery
+from .ring import Capture, Ring, RingContext
 from .run_marker import PreviousRun, RunMarker
 from .safety import SafeState
 from .standby import WarmLauncher
@@ -219,7 +220,7 @@ class ManagedNode:
         self.crashes_total = 0
         self.reported_gaps: set[InputGap] = set()  # input gaps already logged (recovery.py)
         # What the ring took since the heartbeat went late (None: not capturing).
-        self.early_capture: list[LogEntry] | None = None
+        self.early_capture: Capture | None = None
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
         self.last_checkpoint_at: float | None = None  # monotonic
         self.replay_pub = protocol.SignedPublisher(sup.ros_node.create_publisher(
@@ -543,10 +544,19 @@ class ManagedNode:
             )
             pace = self._replay_pace().value if self.cfg.method.logs else None
             gaps = self._report_input_gaps(rec)
+            never = rec.never_delivered()
+            for topic, dropped in never.items():
+                _logger.warning(
+                    '%s %s: input %s: %d message(s) (publication seq %s) reached RORY\'s reader '
+                    'but never the node, below what the node had of the same publisher: not '
+                    'replayed, to keep that publisher\'s order (a node that had not crashed '
+                    'never had them either)', LOG_PREFIX, self.id, topic, dropped['count'],
+                    dropped['seqs'])
             self.sup.events_log.write(
                 'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
                 incarnation=self.incarnation, replay=pace, **timing, **stats,
                 input_gaps=[g.to_json() for g in gaps], r_log=rec.r_summary(),
+                never_delivered=never,
             )
             if rec.ring is None or not rec.ring.active_topics:
                 self._end_recovery()
@@ -710,8 +720,8 @@ class ManagedNode:
         limit = self.cfg.hang_timeout
         suspect = STALL_SUSPECT if limit is None else min(STALL_SUSPECT, limit / 2)
         if stalled >= suspect and self.early_capture is None:
-            self.early_capture = []
-            ring.activate(self.early_capture.append)
+            self.early_capture = Capture()
+            ring.activate(self.early_capture)
             _logger.info('%s %s: no heartbeat for %.1f s: RORY keeps its inputs from now on',
                          LOG_PREFIX, self.id, stalled)
         elif stalled < suspect and self.early_capture is not None:

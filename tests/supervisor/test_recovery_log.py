@@ -35,6 +35,12 @@ def checkpoints(tmp_path: Path) -> CheckpointStore:
     return CheckpointStore(tmp_path / 'store', NODE, keep=5)
 
 
+def add_each(rlog: RecoveryLog, entries: list[LogEntry]) -> None:
+    """As the ring delivers after its backlog: one message at a time."""
+    for e in entries:
+        rlog.add(e)
+
+
 def write_segment(segments: SegmentStore, n: int, entries: list[LogEntry]) -> None:
     with segments.open(n) as writer:
         for e in entries:
@@ -161,7 +167,7 @@ def test_recovery_log_writes_new_entries_in_order(segments: SegmentStore) -> Non
 def test_recovery_log_drops_identities_already_known(segments: SegmentStore) -> None:
     known = {'/a': {(10, 1), (11, 2)}}
     rlog = RecoveryLog(segments, known)
-    rlog.add_many([entry('/a', 10, 1), entry('/a', 12, 3), entry('/a', 11, 2)])
+    rlog.add_backlog([entry('/a', 10, 1), entry('/a', 12, 3), entry('/a', 11, 2)])
     assert rlog.entries == [entry('/a', 12, 3)]
     assert rlog.dropped_known == 2
     rlog.seal()
@@ -222,7 +228,7 @@ def test_recovery_log_after_seal_entries_go_to_relay(segments: SegmentStore) -> 
     rlog.add(logged)
     rlog.seal()
     late = [entry('/a', 11, 2), entry('/b', 3, 3)]
-    rlog.add_many(late)
+    add_each(rlog, late)
     rlog.add(entry('/a', 11, 2))  # still deduplicated after the seal
     rlog.add(entry('/a', 1, 1))  # known before
     assert list(rlog.relay) == late
@@ -310,11 +316,11 @@ def test_numbers_that_never_reached_the_host_are_a_gap_in_the_sequence(
     # The node logged 1..10; the ring's backlog repeats 6..10, then 11..20 and, after a
     # link outage longer than the DDS lease, 31..35: 21..30 never arrived.
     rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 11))}})
-    rlog.add_many(_numbers(range(6, 21)))
+    rlog.add_backlog(_numbers(range(6, 21)))
     assert rlog.gaps == []
-    rlog.add_many(_numbers(range(31, 36)))
+    add_each(rlog, _numbers(range(31, 36)))
     rlog.seal()
-    rlog.add_many(_numbers([36, 38]))  # after the release, in the relay: still seen
+    add_each(rlog, _numbers([36, 38]))  # after the release, in the relay: still seen
     assert [(g.topic, g.first, g.last, g.missing) for g in rlog.gaps] == [
         ('/numbers', 21, 30, 10), ('/numbers', 37, 37, 1)]
     assert rlog.gaps[0].to_json() == {'topic': '/numbers', 'first': 21, 'last': 30,
@@ -329,7 +335,7 @@ def test_a_gap_keeps_the_publisher_count_of_the_moment_it_was_seen(
     matched = {'/numbers': 1}
     rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 11))}},
                        publishers=lambda topic: matched[topic])
-    rlog.add_many(_numbers([11, 15]))
+    rlog.add_backlog(_numbers([11, 15]))
     matched['/numbers'] = 0
     assert [(g.first, g.last, g.publishers) for g in rlog.gaps] == [(12, 14, 1)]
     assert 'publishers' not in rlog.gaps[0].to_json()
@@ -339,7 +345,7 @@ def test_the_first_message_after_the_crash_is_checked_against_the_nodes_log(
     segments: SegmentStore,
 ) -> None:
     rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 11))}})
-    rlog.add_many(_numbers([14, 15]))
+    rlog.add_backlog(_numbers([14, 15]))
     assert [(g.first, g.last) for g in rlog.gaps] == [(11, 13)]
 
 
@@ -348,7 +354,7 @@ def test_a_restarted_publisher_starts_a_new_sequence_without_a_gap(
 ) -> None:
     rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 51))}})
     restarted = [entry('/numbers', 9_000_000_000 + s, s) for s in (1, 2, 3)]
-    rlog.add_many(restarted)
+    add_each(rlog, restarted)
     assert rlog.gaps == []
     assert [e.seq for e in rlog.entries] == [1, 2, 3]
 
@@ -357,11 +363,13 @@ def test_the_summary_places_r_after_what_the_node_logged(segments: SegmentStore)
     # The node logged 1..10; R repeats 6..10 (dropped as known) and takes 11..20; after the
     # seal, 21 goes to the relay and is not part of R.
     rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 11))}})
-    rlog.add_many(_numbers(range(6, 21)))
+    rlog.add_backlog(_numbers(range(6, 21)))
     rlog.add(entry('/odom', 5_000_000, 7))
     rlog.seal()
-    rlog.add_many(_numbers([21]))
+    add_each(rlog, _numbers([21]))
     assert rlog.summary() == {
-        '/numbers': {'logged_through': 10, 'entries': 10, 'first_seq': 11, 'last_seq': 20},
-        '/odom': {'logged_through': None, 'entries': 1, 'first_seq': 7, 'last_seq': 7},
+        '/numbers': {'logged_through': 10, 'entries': 10, 'first_seq': 11, 'last_seq': 20,
+                     'never_delivered': 0},
+        '/odom': {'logged_through': None, 'entries': 1, 'first_seq': 7, 'last_seq': 7,
+                  'never_delivered': 0},
     }

@@ -116,7 +116,7 @@ def make(
     ) -> tuple[ReplayStreamer, FakePublisher, RecoveryLog, Released]:
         if rlog is None:
             rlog = RecoveryLog(segments, {})
-        rlog.add_many(r_entries)
+        rlog.add_backlog(r_entries)
         pub = FakePublisher()
         released = Released()
         streamer = ReplayStreamer(
@@ -227,7 +227,8 @@ def test_after_release_entries_are_relayed_with_flag(make: Callable[..., tuple])
     streamer.start()
     assert released.event.wait(WAIT)
     late = [entry('/a', 10), entry('/b', 11), entry('/a', 12)]
-    rlog.add_many(late)
+    for e in late:
+        rlog.add(e)
     pub.wait_for(3 + 3)
     tail = pub.envelopes[3:]
     for envelope, e in zip(tail, late, strict=True):
@@ -241,7 +242,8 @@ def test_switched_topics_are_not_relayed(make: Callable[..., tuple]) -> None:
     streamer.start()
     assert released.event.wait(WAIT)
     streamer.switched.add('/b')
-    rlog.add_many([entry('/b', 10), entry('/a', 11), entry('/b', 12), entry('/a', 13)])
+    for e in [entry('/b', 10), entry('/a', 11), entry('/b', 12), entry('/a', 13)]:
+        rlog.add(e)
     pub.wait_for(2 + 2)
     # The relay is FIFO: once /a 13 is out, both /b entries have been consumed.
     time.sleep(0.05)

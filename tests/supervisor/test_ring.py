@@ -18,7 +18,7 @@ from std_msgs.msg import Int64
 from rory_runtime.log import LogEntry, SegmentStore
 from rory_runtime.protocol import InputSpec, ring_depth
 from rory_runtime.supervisor.recovery import RecoveryLog
-from rory_runtime.supervisor.ring import Ring, RingContext
+from rory_runtime.supervisor.ring import Capture, Ring, RingContext
 
 pytestmark = pytest.mark.ros
 
@@ -69,8 +69,8 @@ def test_passive_history_then_live_messages_in_order(ring: Ring, publisher: Publ
     for n in range(1, depth + 11):
         publisher.publish(Int64(data=n))
     publisher.wait_for_all_acked(Duration(seconds=5.0))
-    taken: list[LogEntry] = []
-    ring.activate(taken.append)
+    taken = Capture()
+    ring.activate(taken)
     for n in range(depth + 11, depth + 41):
         publisher.publish(Int64(data=n))
         time.sleep(0.002)
@@ -88,7 +88,7 @@ def test_a_burst_beyond_the_history_is_reported_as_a_gap(
     rlog = RecoveryLog(segments, {}, publishers=ring.publisher_count)
     publisher.publish(Int64(data=0))  # publication sequence number 1
     publisher.wait_for_all_acked(Duration(seconds=5.0))
-    ring.activate(rlog.add)
+    ring.activate(rlog)
     _settle(publisher, rlog.entries, 1)
     for n in range(1, 401):
         publisher.publish(Int64(data=n))
@@ -130,8 +130,8 @@ def test_a_ring_on_the_supervisors_context_stays_passive_and_leaves_the_context_
         pub.wait_for_all_acked(Duration(seconds=5.0))
         for _ in range(5):
             sup_executor.spin_once(timeout_sec=0.05)
-        taken: list[LogEntry] = []
-        ring.activate(taken.append)
+        taken = Capture()
+        ring.activate(taken)
         assert [e.seq for e in taken] == [1, 2, 3, 4, 5]
         for topic in ring.topics.values():
             topic.destroy()
@@ -140,3 +140,53 @@ def test_a_ring_on_the_supervisors_context_stays_passive_and_leaves_the_context_
     finally:
         sup_executor.shutdown(timeout_sec=1.0)
         owner.try_shutdown()
+
+
+def test_a_second_activation_hands_over_only_the_newest_depth(
+    ring: Ring, publisher: Publisher,
+) -> None:
+    # What the first activation took (retained: DDS no longer holds it) and what DDS kept
+    # since: together they are the last `depth` messages, never more. Handing over older ones
+    # gave issue 21's recovery messages the node had applied long before, outside every
+    # window it could check.
+    depth = ring_depth(SPEC)
+    taken = Capture()
+    ring.activate(taken)
+    for n in range(1, depth + 1):
+        publisher.publish(Int64(data=n))
+    _settle(publisher, taken, depth)
+    ring.deactivate()
+    for n in range(depth + 1, depth + 21):
+        publisher.publish(Int64(data=n))
+    publisher.wait_for_all_acked(Duration(seconds=5.0))
+    again = Capture()
+    ring.activate(again)
+    assert [e.seq for e in again] == list(range(21, depth + 21))
+
+
+def test_each_message_carries_its_publishers_gid(ros_domain: int, ring: Ring) -> None:
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    node = Node('two_publishers', context=ctx)
+    pubs = [node.create_publisher(Int64, SPEC.topic, QoSProfile(depth=100)) for _ in range(2)]
+    try:
+        deadline = time.monotonic() + 10.0
+        while ring.publisher_count(SPEC.topic) < 2 or any(
+                pub.get_subscription_count() < 1 for pub in pubs):
+            assert time.monotonic() < deadline, 'ring reader and publishers never matched'
+            time.sleep(0.01)
+        for n in range(1, 6):
+            for k, pub in enumerate(pubs):
+                pub.publish(Int64(data=100 * k + n))
+        for pub in pubs:
+            pub.wait_for_all_acked(Duration(seconds=5.0))
+        taken = Capture()
+        ring.activate(taken)
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
+    by_publisher: dict[bytes | None, list[int]] = {}
+    for e in taken:
+        by_publisher.setdefault(e.publisher, []).append(e.seq)
+    assert len(by_publisher) == 2 and all(p is not None and len(p) == 16 for p in by_publisher)
+    assert sorted(by_publisher.values()) == [[1, 2, 3, 4, 5], [1, 2, 3, 4, 5]]

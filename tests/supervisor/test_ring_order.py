@@ -6,7 +6,7 @@ import threading
 from typing import Any, cast
 
 from rory_runtime.log import LogEntry
-from rory_runtime.supervisor.ring import Ring
+from rory_runtime.supervisor.ring import Capture, Ring
 
 
 def entry(topic: str, n: int) -> LogEntry:
@@ -37,11 +37,12 @@ def test_backlog_reaches_the_sink_before_messages_taken_during_activation() -> N
     a = _RacingTopic('/a', [entry('/a', 1), entry('/a', 3)], entry('/a', 10))
     b = _RacingTopic('/b', [entry('/b', 2)], entry('/b', 11))
     ring.topics = cast(Any, {'/a': a, '/b': b})
-    received: list[int] = []
-    ring.activate(lambda e: received.append(e.recv_ns))
+    sink = Capture()
+    ring.activate(sink)
     for topic in (a, b):
         assert topic.thread is not None
         topic.thread.join(timeout=2.0)
+    received = [e.recv_ns for e in sink]
     # backlog of both topics merged in receive order, then the live ones
     assert received[:3] == [1, 2, 3]
     assert sorted(received[3:]) == [10, 11]

@@ -53,9 +53,12 @@ discovery: $(STAMP)
 	$(PY) -m rory_eval.discovery --runs 12
 
 # Every fault kind at random moments, some twice: on the integrator (prints runs, correct, lost,
-# twice; ~10 min), then on five real targets x three worlds in the simulator (~40 min).
+# twice; ~4 min); crash storms, 1-5 strikes in a row at drawn gaps, on the integrator (~20 min;
+# a wrong schedule is kept in tests/integration/storm_schedules.json); then on five real targets
+# x three worlds in the simulator (~40 min).
 faults: $(STAMP)
 	$(PY) -m rory_eval.fault_campaign --runs 8
+	$(PY) -m rory_eval.storm_campaign --runs 40
 	$(PY) -m rory_eval.target_faults
 
 clean:

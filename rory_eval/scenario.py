@@ -68,25 +68,41 @@ class Kill:
     after_checkpoint: int | None = None  # right after the node reports its k-th checkpoint
     during_recovery: float | None = None  # this long after the replacement starts replaying
     after_respawn: float | None = None  # this long after a replacement process was spawned
+    # This long after the previous strike (the first: after the first number); a signal waits
+    # for a live process (it lands at the next spawn when the node is down).
+    after_previous: float | None = None
     how: str = 'SIGKILL'
+
+    @property
+    def signal(self) -> bool:
+        """Sent to the process (not a flag file the program takes)."""
+        return self.how not in ('raise', 'hang')
 
     def describe(self) -> str:
         """Short label."""
         what = '' if self.how == 'SIGKILL' else f'{self.how} '
         if self.after is not None:
             return f'{what}at {self.after:g} s'
+        if self.after_previous is not None:
+            return f'{what}{self.after_previous:g} s after the previous strike'
         if self.after_checkpoint is not None:
             return f'{what}just after checkpoint {self.after_checkpoint}'
         if self.after_respawn is not None:
             return f'{what}{self.after_respawn:g} s after the respawn'
         return f'{what}{self.during_recovery:g} s into the replay'
 
-    def strike(self, pid: int, workdir: Path) -> None:
-        """Deliver the fault."""
-        if self.how in ('raise', 'hang'):
+    def strike(self, pid: int | None, workdir: Path) -> bool:
+        """Deliver the fault; False if its process is gone (a signal needs one)."""
+        if not self.signal:
             (workdir / f'fault-{self.how}').touch()
-        else:
+            return True
+        if pid is None:
+            return False
+        try:
             os.kill(pid, signal.Signals[self.how])
+        except ProcessLookupError:  # died a moment ago; its exit is not in the events yet
+            return False
+        return True
 
 
 @dataclass
@@ -368,6 +384,7 @@ def run(
                 [*publisher, min_subs], env, workdir, workdir / f'publisher-{method}.log'
             ) as pub:
                 started: float | None = None
+                previous: float | None = None  # the last strike
                 before = observer.state
                 while True:
                     now = time.monotonic()
@@ -376,11 +393,12 @@ def run(
                     tracker.feed(events.poll())
                     if started is None and observer.state != before:
                         started = now  # the first number has been applied
-                    if pending and started is not None and tracker.pid is not None:
+                    if pending and started is not None:
                         kill = pending[0]
-                        if tracker.due(kill, started, now):
-                            kill.strike(tracker.pid, workdir)
+                        if tracker.due(kill, started, now, previous) and kill.strike(
+                                tracker.pid, workdir):
                             kills_done.append((kill.describe(), now))
+                            previous = now
                             pending.pop(0)
                             tracker.replaying_since = None
                             tracker.respawned_at = None
@@ -391,9 +409,13 @@ def run(
                     # restart can take seconds to be discovered (FACTS.md), and judging the
                     # state an earlier process published would report its losses, not the
                     # node's (a campaign run judged 102 numbers lost that the node had).
+                    # Once heard, it must still be heard: the programs publish their state
+                    # on a 1 Hz timer, and a node that went silent is hung (its recovery, a
+                    # hang_timeout away, is still to come), not finished.
                     heard = observer.state_heard >= tracker.running_since
                     quiet = now - max(observer.state_changed, tracker.running_since)
-                    settled = quiet > (2.5 if heard else 8.0)
+                    alive = now - observer.state_heard < 2.0
+                    settled = quiet > 2.5 and alive if heard else quiet > 8.0
                     complete = isinstance(observer.state, dict) and (
                         observer.state.get('count') == count
                     )
@@ -427,6 +449,7 @@ class EventTracker:
 
     def __init__(self) -> None:
         self.pid: int | None = None
+        self.incarnation = 0
         self.state = ''
         self.checkpoints = 0
         self.replaying_since: float | None = None
@@ -437,8 +460,11 @@ class EventTracker:
     def feed(self, new: list[dict[str, Any]]) -> None:
         """Take in newly read events."""
         for ev in new:
-            if ev['kind'] == 'spawn':
+            if ev['kind'] == 'exit' and ev.get('incarnation') == self.incarnation:
+                self.pid = None  # nothing to signal until the next spawn
+            elif ev['kind'] == 'spawn':
                 self.pid = int(ev['pid'])
+                self.incarnation = int(ev['incarnation'])
                 if ev.get('mode') == 'recover':
                     self.respawned_at = time.monotonic()
                     if self.first_respawned_at is None:
@@ -451,9 +477,14 @@ class EventTracker:
                 if ev['new'] == 'RUNNING':
                     self.running_since = time.monotonic()
 
-    def due(self, kill: Kill, started: float, now: float) -> bool:
+    def due(self, kill: Kill, started: float, now: float, previous: float | None = None) -> bool:
+        """Whether ``kill`` should strike now (``previous``: when the last strike was)."""
+        if kill.signal and self.pid is None:
+            return False
         if kill.after is not None:
             return now - started >= kill.after
+        if kill.after_previous is not None:
+            return now - (started if previous is None else previous) >= kill.after_previous
         if kill.after_checkpoint is not None:
             return self.checkpoints >= kill.after_checkpoint
         if kill.after_respawn is not None:

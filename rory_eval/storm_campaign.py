@@ -6,16 +6,17 @@ checkpoint, or between two checkpoints. Each run here is the integrator scenario
 supervisor, real node, real publisher of 1..N at 50 Hz, ``rory_eval/flaky``) struck by a
 *schedule*: 1-5 strikes, each a gap after the previous one (0.05 s to two checkpoint
 intervals), each a fault (SIGKILL, SIGSEGV, an uncaught exception, a hang the heartbeat
-finds), with paced or fast replay, from a warm standby or cold. Schedules are drawn by
-Hypothesis (:func:`schedules`), so the boundaries come up early: the shortest gaps, the most
-strikes. A run is correct when the node's final history is exactly 1..N, in order (a message
-the supervisor quarantined as poison, two strikes having landed on it, is left out of N and
-counted); lost and applied-twice numbers are counted one by one.
+finds), with paced or fast replay, from a warm standby or cold. The campaign draws each
+schedule on its own from a seed (:func:`random_schedule`); the tests draw from the same space
+with Hypothesis (:func:`schedules`), whose boundaries come up early. A run is correct when the
+node's final history is exactly 1..N, in order (a message the supervisor quarantined as
+poison, two strikes having landed on it, is left out of N and counted); lost and applied-twice
+numbers are counted one by one.
 
 A schedule that goes wrong is written to ``tests/integration/storm_schedules.json``, where
 ``tests/integration/test_storm_campaign.py`` replays every one of them as a regression case.
 
-    python -m rory_eval.storm_campaign --runs 40          # the campaign (~15 min here)
+    python -m rory_eval.storm_campaign --runs 40          # the campaign (~25 min here)
     python -m rory_eval.storm_campaign --issue-schedule 20  # issue 21's schedule, 20 x 4 ways
 """
 
@@ -23,16 +24,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import random
 import shutil
 import sys
 import tempfile
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hypothesis import HealthCheck, Phase, given, seed, settings
 from hypothesis import strategies as st
 
 from rory_eval.fault_campaign import FLAKY
@@ -109,18 +110,43 @@ ISSUE_21 = tuple(
 2 s checkpoints; paced and fast replay, warm and cold starts."""
 
 
+MAX_STRIKES = 5
+FIRST = (0.3, 2.0)  # the first strike, in checkpoint intervals after the first number...
+GAP = (0.05, 2.0)  # ...and each next one after the previous (the lower bound in seconds)
+
+
+def _bounds(interval: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    return (FIRST[0], FIRST[1] * interval), (GAP[0], GAP[1] * interval)
+
+
 def schedules(interval: float = INTERVAL) -> st.SearchStrategy[Schedule]:
-    """1-5 strikes; the first 0.3 s to two intervals into the stream, each next one 0.05 s to
-    two checkpoint intervals after the previous; any fault; either pace; warm or cold."""
-    strike = st.builds(Strike, gap=st.floats(0.05, 2 * interval).map(lambda g: round(g, 2)),
-                       fault=st.sampled_from(FAULTS))
-    first = st.builds(Strike, gap=st.floats(0.3, 2 * interval).map(lambda g: round(g, 2)),
-                      fault=st.sampled_from(FAULTS))
+    """Hypothesis: 1-5 strikes; the first 0.3 s to two intervals into the stream, each next
+    one 0.05 s to two checkpoint intervals after the previous; any fault; either pace; warm or
+    cold. Its boundaries (the shortest gaps, the most strikes) come up early."""
+    first, gap = _bounds(interval)
+
+    def strike(bounds: tuple[float, float]) -> st.SearchStrategy[Strike]:
+        return st.builds(Strike, gap=st.floats(*bounds).map(lambda g: round(g, 2)),
+                         fault=st.sampled_from(FAULTS))
+
     return st.builds(
         lambda head, tail, pace, warm: Schedule((head, *tail), pace, warm, interval),
-        first, st.lists(strike, min_size=0, max_size=4),
+        strike(first), st.lists(strike(gap), min_size=0, max_size=MAX_STRIKES - 1),
         st.sampled_from(('paced', 'fast')), st.booleans(),
     )
+
+
+def random_schedule(rng: random.Random, interval: float = INTERVAL) -> Schedule:
+    """The same space as :func:`schedules`, drawn uniformly: the campaign's draws.
+
+    Hypothesis, given few examples, spends most of them on variations of one schedule; a
+    campaign of real runs wants each draw independent of the others.
+    """
+    first, gap = _bounds(interval)
+    count = rng.randint(1, MAX_STRIKES)
+    strikes = [Strike(round(rng.uniform(*(first if i == 0 else gap)), 2), rng.choice(FAULTS))
+               for i in range(count)]
+    return Schedule(tuple(strikes), rng.choice(('paced', 'fast')), rng.random() < 0.5, interval)
 
 
 @dataclass
@@ -240,20 +266,9 @@ def keep_regression(outcome: Outcome, path: Path = REGRESSIONS) -> None:
     path.write_text(json.dumps(data, indent=1) + '\n')
 
 
-def campaign(runs: int, fixed: int, each: Callable[[Schedule], None]) -> None:
-    """Draw ``runs`` schedules (the same ones for the same seed) and call ``each`` on them.
-
-    Hypothesis draws; a wrong run does not stop it (``each`` keeps the outcome), so nothing is
-    shrunk: one run takes seconds of real processes.
-    """
-
-    @settings(max_examples=runs, database=None, deadline=None, derandomize=False,
-              phases=(Phase.generate,), suppress_health_check=list(HealthCheck))
-    @given(schedules())
-    def draw(schedule: Schedule) -> None:
-        each(schedule)
-
-    seed(fixed)(draw)()  # the same command draws the same schedules
+def campaign(runs: int, seed: int) -> list[Schedule]:
+    """``runs`` schedules, the same ones for the same seed."""
+    return [random_schedule(random.Random(f'{seed}-{i}')) for i in range(runs)]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -298,7 +313,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for schedule in load_regressions():
             each(schedule)
     else:
-        campaign(args.runs, args.seed, each)
+        for schedule in campaign(args.runs, args.seed):
+            each(schedule)
     print()
     print(table(outcomes))
     if not args.out and all(o.correct for o in outcomes):

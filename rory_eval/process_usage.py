@@ -9,10 +9,11 @@ about once a second and reported per role, for the whole run and for its second 
 a library shared by three processes is counted a third in each) beside the peak RSS (which
 counts it whole in each).
 
-Roles come from the command line: ``rory_runtime.cli supervise`` is the supervisor,
-``rory_runtime.standby`` a standby (one that was activated and became the node keeps the
-name), anything else the node. CPU that the tree's reaped children used (a crashed node)
-is reported as ``reaped``.
+Roles come from the command line: ``rory_runtime.cli supervise`` is the supervisor; its forks
+name themselves (rory_runtime/supervisor/zygote.py): ``rory-zygote`` is the fork server,
+``rory-standby`` a waiting standby, and a standby that became a node, like a node forked cold,
+shows the node's command: anything else is the node. CPU that the tree's reaped children used
+(a crashed node) is reported as ``reaped``.
 """
 
 from __future__ import annotations
@@ -26,15 +27,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-ROLES = ('node', 'supervisor', 'standby', 'reaped')
+from rory_runtime.supervisor.zygote import STANDBY_TITLE, ZYGOTE_TITLE
+
+ROLES = ('node', 'supervisor', 'zygote', 'standby', 'reaped')
 """Every role a reading can be given, in report order."""
 
 _CLK_TCK = float(os.sysconf('SC_CLK_TCK'))
 
 
 def role_of(cmdline: Sequence[str]) -> str:
-    """'supervisor', 'standby' or 'node', from a process's argv."""
-    if 'rory_runtime.standby' in cmdline:
+    """'supervisor', 'zygote', 'standby' or 'node', from a process's command line (a fork of
+    the zygote names itself: rory_runtime/supervisor/zygote.py)."""
+    first = cmdline[0] if cmdline else ''
+    if first == ZYGOTE_TITLE:
+        return 'zygote'
+    if first == STANDBY_TITLE:
         return 'standby'
     if 'rory_runtime.cli' in cmdline and 'supervise' in cmdline:
         return 'supervisor'

@@ -619,6 +619,11 @@ class NodeRuntime:
             process_start_ns=_process_start_ns(),
             interval=self.interval,
             replay=self.spec.replay,
+            # What its participant was made with (a fork's /proc/PID/environ shows the
+            # supervisor's environment at its start, not this process's).
+            dds_profile=(os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
+                         or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')),
+            dds_transports=os.environ.get('FASTDDS_BUILTIN_TRANSPORTS'),
         )
         if not self.method.logs:
             # restart and checkpoint have nothing to replay: release right away.

@@ -8,7 +8,13 @@ import logging
 import sys
 from collections.abc import Sequence
 
+import setproctitle
+
 from .errors import ConfigError, ParameterError, RoryError
+
+# Before anything else runs: a later first call found no room for a title in this process (ps
+# then showed every fork of the supervisor's zygote with the supervisor's command line).
+setproctitle.getproctitle()
 
 
 def _supervise(args: argparse.Namespace) -> int:

@@ -1,34 +1,28 @@
-"""A warm standby: a process that has done a node's slow start-up before the node crashes.
+"""Becoming a node: what a process forked from the supervisor's zygote does to run a node's
+program as ``python node.py`` or ``python -m package.node`` would have.
 
-A cold restart of a Python rclpy node costs ~0.25 s of imports and initialisation and then, in
-most runs, 1.7-2.6 s before the rest of the graph hears the new DDS participant. A process
-whose participant is already known gets its first message ~10 ms after creating its node. So
-the supervisor keeps one of these per node, started while the node runs::
+The zygote (``supervisor/zygote.py``) imports, before it forks anything, what every node's
+program imports from outside its own folder (:func:`warm_imports`: rclpy, numpy, message
+packages and their type support); the node's own modules are never imported before the node
+starts, because a node class is decorated from the environment when it is defined, and that
+environment exists only then. A module of someone else's that decorates at import is abandoned
+(its import fails here and is redone by the node).
 
-    python -m rory_runtime.standby --control-fd R --ready-fd W -- node.py [args...]
-    python -m rory_runtime.standby --control-fd R --ready-fd W -- -m package.node [args...]
-
-Before activation it imports what the node's program imports from outside its own folder
-(rclpy, numpy, message packages and their type support, RORY's runtime), calls
-``rclpy.init`` with the node's own arguments and creates a hidden placeholder node, so that its
-participant exists and is discovered while the real node still runs. It writes one byte on the
-ready descriptor and waits.
-
-Activation is one JSON line on the control descriptor: the environment the supervisor would
-have given a new process (incarnation, mode, quarantine). The standby applies it and runs the
-program as ``python node.py`` would (``__name__ == '__main__'``); the program's own
-``rclpy.init()`` is absorbed when its arguments are the ones already used; the placeholder is
-destroyed as soon as the program's node exists, so the participant is never without a node.
-End of file on the control descriptor (the supervisor dropped it) ends the standby.
-
-The node's own modules are never imported before activation: a node class is decorated from
-the environment at import time, and that environment only exists at activation. A third-party
-module that decorates at import is abandoned (its import fails here and is redone later).
+A *warm standby* is such a fork that has also called ``rclpy.init`` and made a hidden
+placeholder node, so that its DDS participant exists and is discovered before any node
+crashes: a cold restart of a Python rclpy node costs ~0.25 s of imports and initialisation and
+then, in most runs, 1.7-2.6 s before the rest of the graph hears a new participant, while a
+process whose participant is already known gets its first message ~10 ms after making its
+node. It waits for one :class:`Activation` line: the program, the environment and the folder
+of the node it becomes. Then the program runs (``__name__ == '__main__'``); its own
+``rclpy.init()`` is absorbed when it asks for what is already done (:func:`absorb_init`); the
+placeholder goes as soon as the program's first node exists, so the participant is never
+without a node (:func:`drop_placeholder_after_first_node`). End of file instead of a line (the
+supervisor dropped it) ends the standby.
 """
 
 from __future__ import annotations
 
-import argparse
 import ast
 import contextlib
 import importlib
@@ -195,55 +189,86 @@ def _load_type_support(msgtype: Any) -> None:
 # -- activation ---------------------------------------------------------------------------------
 
 
-def read_activation(fd: int) -> dict[str, str] | None:
-    """Block until the activation line arrives; its environment, or None at end of file.
+@dataclass(frozen=True)
+class Activation:
+    """What a standby becomes: a node's command line, environment and folder."""
+
+    argv: tuple[str, ...]
+    env: dict[str, str]
+    cwd: str
+
+    def encode(self) -> bytes:
+        """The line written on the standby's control pipe."""
+        return json.dumps({'argv': list(self.argv), 'env': self.env,
+                           'cwd': self.cwd}).encode() + b'\n'
+
+    @classmethod
+    def decode(cls, data: bytes) -> Activation:
+        """Parse one line.
+
+        Raises:
+            StandbyError: Not a JSON object with ``argv`` (strings), ``env`` (strings to
+                strings) and ``cwd`` (a string).
+        """
+        try:
+            message = json.loads(data)
+            argv, env, cwd = message['argv'], message['env'], message['cwd']
+        except (ValueError, KeyError, TypeError) as err:
+            raise StandbyError(f'bad activation message: {err}') from None
+        if not (isinstance(argv, list) and argv and all(isinstance(a, str) for a in argv)):
+            raise StandbyError('bad activation message: argv must be a list of strings')
+        if not isinstance(env, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in env.items()
+        ):
+            raise StandbyError('bad activation message: env must map strings to strings')
+        if not isinstance(cwd, str):
+            raise StandbyError('bad activation message: cwd must be a string')
+        return cls(tuple(argv), env, cwd)
+
+
+def read_activation(fd: int) -> Activation | None:
+    """Block until the activation line arrives; None at end of file before one.
 
     Raises:
-        StandbyError: The line is not a JSON object of strings under ``env``.
+        StandbyError: The line is malformed or longer than :data:`ACTIVATE_LIMIT`.
     """
     data = b''
     while not data.endswith(b'\n'):
         chunk = os.read(fd, 65536)
         if not chunk:
-            return None if not data else _decode(data)
+            return None if not data else Activation.decode(data)
         data += chunk
         if len(data) > ACTIVATE_LIMIT:
             raise StandbyError(f'activation longer than {ACTIVATE_LIMIT} bytes')
-    return _decode(data)
+    return Activation.decode(data)
 
 
-def _decode(data: bytes) -> dict[str, str]:
-    try:
-        message = json.loads(data)
-        env = message['env']
-    except (ValueError, KeyError, TypeError) as err:
-        raise StandbyError(f'bad activation message: {err}') from None
-    if not isinstance(env, dict) or not all(
-        isinstance(k, str) and isinstance(v, str) for k, v in env.items()
-    ):
-        raise StandbyError('bad activation message: env must map strings to strings')
-    return env
-
-
-def encode_activation(env: dict[str, str]) -> bytes:
-    """The activation line for an environment update."""
-    return json.dumps({'env': env}).encode() + b'\n'
-
-
-def absorb_init(rclpy: Any, used_args: list[str]) -> Callable[[], None]:
+def absorb_init(
+    rclpy: Any, used_args: list[str],
+    same: Callable[[list[str], list[str]], bool] | None = None,
+) -> Callable[[], None]:
     """Make the program's ``rclpy.init()`` a no-op when it asks for what is already done.
 
     Anything else (other arguments, a context, a domain id) shuts the standby's context down
     and initialises as asked: correct, only no longer warm. Returns the undo.
+
+    Args:
+        same: Whether the program's arguments ask for what ``used_args`` did (default: every
+            argument after the program's name equal).
     """
     real_init = rclpy.init
+
+    def equal(wanted: list[str], used: list[str]) -> bool:
+        return wanted[1:] == used[1:]
+
+    judge = same or equal
 
     def init(*args: Any, **kwargs: Any) -> None:
         rclpy.init = real_init
         wanted = kwargs.get('args', args[0] if args else None)
         wanted = list(sys.argv if wanted is None else wanted)
         extra = set(kwargs) - {'args'} or len(args) > 1
-        if not extra and wanted[1:] == used_args[1:] and rclpy.ok():
+        if not extra and judge(wanted, used_args) and rclpy.ok():
             return None
         _logger.warning('[rory] standby: the program initialises rclpy differently; '
                         'starting cold')
@@ -285,55 +310,5 @@ def run_program(program: Program) -> None:
         runpy.run_path(str(program.script), run_name='__main__')
     else:
         sys.argv = program.argv
+        sys.path[0] = str(program.home())  # python -m puts the working directory first
         runpy.run_module(str(program.module), run_name='__main__', alter_sys=True)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Warm up, wait for activation, become the node."""
-    parser = argparse.ArgumentParser(prog='python -m rory_runtime.standby')
-    parser.add_argument('--control-fd', type=int, required=True)
-    parser.add_argument('--ready-fd', type=int, default=None)
-    parser.add_argument('program', nargs=argparse.REMAINDER)
-    args = parser.parse_args(argv)
-    command = args.program[1:] if args.program[:1] == ['--'] else args.program
-    try:
-        program = Program.parse(command)
-    except StandbyError as err:
-        print(f'rory standby: {err}', file=sys.stderr)
-        return 2
-    if program.script is not None:
-        sys.path[0] = str(program.home())
-    warm_imports(program)
-    import rclpy
-    from rclpy.node import Node
-
-    from .log import default_typestore
-
-    default_typestore()
-    used_args = program.argv
-    rclpy.init(args=used_args)
-    placeholder = Node(f'{PLACEHOLDER_PREFIX}{os.getpid()}', start_parameter_services=False,
-                       enable_rosout=False)
-    if args.ready_fd is not None:
-        os.write(args.ready_fd, b'R')
-        os.close(args.ready_fd)
-    try:
-        env = read_activation(args.control_fd)
-    except StandbyError as err:
-        print(f'rory standby: {err}', file=sys.stderr)
-        return 2
-    finally:
-        os.close(args.control_fd)
-    if env is None:  # dropped before use
-        placeholder.destroy_node()
-        rclpy.shutdown()
-        return 0
-    os.environ.update(env)
-    absorb_init(rclpy, used_args)
-    drop_placeholder_after_first_node(Node, placeholder)
-    run_program(program)
-    return 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())

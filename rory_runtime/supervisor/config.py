@@ -72,8 +72,8 @@ class NodeConfig:
     hang_timeout: float | None = 10.0
     # From spawn to the first beat (imports, rclpy.init, the node's constructor).
     start_timeout: float | None = 60.0
-    # A process that has already imported rclpy and joined DDS waits to become the node at its
-    # next start (rory_runtime/standby.py): restart without the ~2 s of DDS discovery.
+    # A fork of the zygote that has already joined DDS waits to become the node at its next
+    # start (supervisor/standby.py): restart without the ~2 s of DDS discovery.
     warm_standby: bool = False
 
 

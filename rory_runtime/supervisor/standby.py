@@ -1,10 +1,15 @@
-"""Warm standbys, the supervisor's side: one waiting process per node, used at its next start.
+"""Starting nodes, the supervisor's side: forks of the zygote, and one warm standby for all.
 
-:class:`WarmLauncher` is a :class:`~.process.Launcher`. ``prepare()`` starts a standby
-(``rory_runtime/standby.py``) for a node command while the node runs; ``spawn()`` for the same
-command, folder and environment activates it instead of starting a cold process, and falls
-back to a cold start (saying why) when there is none, it has died, or the environment differs
-in anything but the keys a new incarnation changes.
+:class:`ForkLauncher` is a :class:`~.process.Launcher`. A node whose command is a Python program
+(``python FILE ...`` or ``python -m MODULE ...``, this interpreter, the zygote's import
+environment) starts as a fork of the zygote (:mod:`.zygote`): its imports are already in
+memory. ``prepare()`` keeps a *standby* ready: a fork that has called ``rclpy.init`` and whose
+DDS participant the graph already knows, so a recovered node receives its first message
+within milliseconds rather than after the 1-2 s a new participant takes to be discovered. One
+standby serves every node with the same ``rclpy.init`` (:func:`~.zygote.init_signature`): a
+robot's nodes under one supervisor usually share one. ``spawn()`` activates it when it fits;
+when it is gone (two nodes crashed at once, or it died) the node is forked cold from the
+zygote, and says why. Any other command is started with ``exec``, cold.
 """
 
 from __future__ import annotations
@@ -14,188 +19,275 @@ import logging
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..protocol import ENV_INCARNATION, ENV_MODE, ENV_QUARANTINE
-from ..standby import encode_activation
-from .process import PopenLauncher, _die_with_supervisor, _PopenChild
+from ..errors import RoryError
+from .process import Child, PopenLauncher
 from .states import LOG_PREFIX
+from .zygote import (
+    Zygote,
+    activation_line,
+    forkable,
+    init_signature,
+    ros_arguments,
+)
 
 _logger = logging.getLogger('rory.supervisor')
 
-ACTIVATION_KEYS = frozenset({ENV_INCARNATION, ENV_MODE, ENV_QUARANTINE})
-"""Environment a standby receives at activation; everything else must match at preparation."""
+IMPORT_ENV_PREFIXES = ('PYTHON', 'LD_', 'OPENBLAS_', 'OMP_', 'MKL_')
+"""Environment that shapes what a process imports: a node whose values differ from the
+zygote's cannot be forked from it."""
 
-_PYTHONS = frozenset({'python', 'python3', 'python3.11'})
+
+def _import_env(env: Mapping[str, str]) -> dict[str, str]:
+    return {k: v for k, v in env.items() if k.startswith(IMPORT_ENV_PREFIXES)}
 
 
-def standby_command(argv: Sequence[str], *, control_fd: int, ready_fd: int) -> list[str] | None:
-    """The standby's command line for a node's, or None when the node is not a plain Python
-    program (``python node.py ...`` or ``python -m package.node ...``)."""
-    if len(argv) < 2:
-        return None
-    if argv[0] != sys.executable and Path(argv[0]).name not in _PYTHONS:
-        return None
-    rest = list(argv[1:])
-    if rest[0] == '-m' and len(rest) >= 2:
-        pass
-    elif rest[0].startswith('-'):
-        return None  # interpreter options (-u, -X, -c): run those cold
-    return [argv[0], '-m', 'rory_runtime.standby', '--control-fd', str(control_fd),
-            '--ready-fd', str(ready_fd), '--', *rest]
+class PidChild:
+    """A node process this supervisor did not start with Popen but is the parent of (a fork of
+    the zygote, re-parented here). Like Popen: one thread reaps, the others see the code."""
+
+    def __init__(self, pid: int, *, warm: bool, why_cold: str = '') -> None:
+        self._pid = pid
+        self.warm = warm
+        self.why_cold = why_cold
+        self._code: int | None = None
+        self._reaping = threading.Lock()
+        self._done = threading.Event()
+
+    @property
+    def pid(self) -> int:
+        return self._pid
+
+    def _reaped(self, status: int) -> int:
+        self._code = os.waitstatus_to_exitcode(status)
+        self._done.set()
+        return self._code
+
+    def poll(self) -> int | None:
+        if self._done.is_set():
+            return self._code
+        if not self._reaping.acquire(blocking=False):
+            return None  # another thread is in waitpid
+        try:
+            if self._done.is_set():
+                return self._code
+            pid, status = os.waitpid(self._pid, os.WNOHANG)
+            return self._reaped(status) if pid else None
+        except ChildProcessError:
+            return self._reaped(0) if not self._done.is_set() else self._code
+        finally:
+            self._reaping.release()
+
+    def wait(self, timeout: float | None = None) -> int:
+        if timeout is None:
+            with self._reaping:
+                if not self._done.is_set():
+                    try:
+                        _, status = os.waitpid(self._pid, 0)
+                    except ChildProcessError:
+                        status = 0
+                    self._reaped(status)
+            assert self._code is not None
+            return self._code
+        deadline = time.monotonic() + timeout
+        while (code := self.poll()) is None:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise subprocess.TimeoutExpired(str(self._pid), timeout)
+            self._done.wait(min(left, 0.01))
+        return code
+
+    def send_signal(self, sig: int) -> None:
+        if not self._done.is_set():
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self._pid, sig)
+
+
+@dataclass
+class Standby:
+    """The waiting process of one init signature."""
+
+    child: PidChild
+    control: int  # write end of its control pipe
+    started: float
+    wanted_by: set[tuple[tuple[str, ...], str]] = field(default_factory=set)
+    ready_at: float | None = None
+    done: threading.Event = field(default_factory=threading.Event)
+
+    @property
+    def pid(self) -> int:
+        return self.child.pid
+
+    def drop(self) -> None:
+        """Kill it and reap it (it holds nothing)."""
+        self.done.set()
+        with contextlib.suppress(OSError):
+            os.close(self.control)
+        self.child.send_signal(signal.SIGKILL)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self.child.wait(timeout=5.0)
 
 
 def _key(argv: Sequence[str], cwd: Path) -> tuple[tuple[str, ...], str]:
     return tuple(argv), str(cwd)
 
 
-def _fixed(env: Mapping[str, str]) -> dict[str, str]:
-    return {k: v for k, v in env.items() if k not in ACTIVATION_KEYS}
-
-
-@dataclass
-class Standby:
-    """One waiting process."""
-
-    proc: subprocess.Popen[bytes]
-    control: int  # write end of its control pipe
-    env: dict[str, str]  # without the activation keys
-    started: float
-    ready_at: float | None = None
-    done: threading.Event = field(default_factory=threading.Event)
-
-    def drop(self) -> None:
-        """Kill it and reap it (it holds nothing)."""
-        with contextlib.suppress(OSError):
-            os.close(self.control)
-        if self.proc.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                self.proc.send_signal(signal.SIGKILL)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            self.proc.wait(timeout=5.0)
-
-
-class WarmChild(_PopenChild):
-    """A node process, and whether it started from a standby."""
-
-    def __init__(self, proc: subprocess.Popen[bytes], *, warm: bool, why_cold: str = '') -> None:
-        super().__init__(proc)
-        self.warm = warm
-        self.why_cold = why_cold
-
-
-class WarmLauncher(PopenLauncher):
-    """Starts nodes from a standby when one is waiting, else cold.
+class ForkLauncher:
+    """Forks nodes from the zygote, from the shared standby when one is waiting.
 
     Args:
+        zygote: The fork server (started before the supervisor's ``rclpy.init``); without one
+            every start is an ``exec``, cold.
         clock: Monotonic clock.
     """
 
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, zygote: Zygote | None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.zygote = zygote
         self._clock = clock
-        self._standbys: dict[tuple[tuple[str, ...], str], Standby] = {}
+        self._standbys: dict[Hashable, Standby] = {}
         self._lock = threading.Lock()
+        self._exec = PopenLauncher()
+
+    def _forkable(self, argv: Sequence[str],
+                  env: Mapping[str, str]) -> tuple[Hashable | None, str]:
+        """The node's init signature, or None and why it cannot be forked."""
+        if self.zygote is None:
+            return None, 'no fork server'
+        program = forkable(argv)
+        if program is None:
+            return None, 'not a python FILE or python -m MODULE command'
+        mine, zygote = _import_env(env), _import_env(self.zygote.env)
+        if mine != zygote:
+            changed = sorted({k for k, _ in set(mine.items()) ^ set(zygote.items())})
+            return None, f'its import environment differs ({", ".join(changed)})'
+        return init_signature(program, env), ''
 
     def prepare(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> int | None:
-        """Start a standby for the next ``spawn(argv, ...)``; its pid, or None when this node
-        cannot have one. Replaces an earlier standby of the same command. Main thread only
-        (PR_SET_PDEATHSIG follows the thread that forked)."""
-        key = _key(argv, cwd)
-        self.discard(argv, cwd)
-        control_r, control_w = os.pipe()
-        ready_r, ready_w = os.pipe()
-        command = standby_command(argv, control_fd=control_r, ready_fd=ready_w)
-        if command is None:
-            for fd in (control_r, control_w, ready_r, ready_w):
-                os.close(fd)
+        """Have a standby waiting for the next ``spawn(argv, ...)``: the one its init signature
+        shares, or a new fork. Its pid, or None when this command cannot have one."""
+        signature, _why = self._forkable(argv, env)
+        if signature is None or self.zygote is None:
             return None
-        os.set_inheritable(control_r, True)
-        os.set_inheritable(ready_w, True)
-        try:
-            proc = subprocess.Popen(
-                command, env=dict(env), cwd=cwd, start_new_session=True,
-                preexec_fn=_die_with_supervisor, pass_fds=(control_r, ready_w),
-            )
-        except OSError:
-            for fd in (control_r, control_w, ready_r, ready_w):
-                os.close(fd)
-            raise
-        finally:
-            with contextlib.suppress(OSError):
-                os.close(control_r)
-            with contextlib.suppress(OSError):
-                os.close(ready_w)
-        standby = Standby(proc, control_w, _fixed(env), self._clock())
         with self._lock:
-            self._standbys[key] = standby
+            standby = self._standbys.get(signature)
+            if standby is not None and standby.child.poll() is None:
+                standby.wanted_by.add(_key(argv, cwd))
+                return standby.pid
+        program = forkable(argv)
+        assert program is not None
+        args = ros_arguments(program.args)
+        init_args = [program.argv[0], *(('--ros-args', *args) if args else ())]
+        forked = self.zygote.fork_standby(init_args, env, cwd)
+        standby = Standby(PidChild(forked.pid, warm=True), forked.control, self._clock(),
+                          {_key(argv, cwd)})
+        with self._lock:
+            old = self._standbys.pop(signature, None)
+            self._standbys[signature] = standby
+        if old is not None:
+            old.drop()
+        self._watch_ready(standby, forked.ready)
+        return standby.pid
 
-        def watch_ready() -> None:
+    def _watch_ready(self, standby: Standby, ready: int) -> None:
+        def watch() -> None:
             try:
-                got = os.read(ready_r, 1)
+                got = os.read(ready, 1)
             except OSError:
                 got = b''
             finally:
-                os.close(ready_r)
+                os.close(ready)
             if got:
                 standby.ready_at = self._clock()
-                _logger.info('%s standby pid %d ready in %.0f ms', LOG_PREFIX, proc.pid,
+                _logger.info('%s standby pid %d ready in %.0f ms', LOG_PREFIX, standby.pid,
                              (standby.ready_at - standby.started) * 1000)
             elif not standby.done.is_set():
                 _logger.warning('%s standby pid %d ended before it was ready (%s)', LOG_PREFIX,
-                                proc.pid, proc.poll())
+                                standby.pid, standby.child.poll())
 
-        threading.Thread(target=watch_ready, name='rory-standby', daemon=True).start()
-        return proc.pid
+        threading.Thread(target=watch, name='rory-standby', daemon=True).start()
 
     def standby(self, argv: Sequence[str], cwd: Path) -> Standby | None:
-        """The standby waiting for this command, if any."""
+        """The standby this command would start from, if one waits."""
         with self._lock:
-            return self._standbys.get(_key(argv, cwd))
+            for standby in self._standbys.values():
+                if _key(argv, cwd) in standby.wanted_by:
+                    return standby
+        return None
 
-    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> WarmChild:
-        """Activate the command's standby if it fits, else start cold."""
+    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> Child:
+        """Activate the shared standby if it fits, else fork cold, else exec cold."""
+        signature, why = self._forkable(argv, env)
+        if signature is None or self.zygote is None:
+            proc = self._exec.spawn(argv, env, cwd)
+            return _ExecChild(proc, why)
         with self._lock:
-            standby = self._standbys.pop(_key(argv, cwd), None)
-        why = 'no standby'
+            standby = self._standbys.pop(signature, None)
+        why = 'no standby waiting'
         if standby is not None:
             standby.done.set()
-            code = standby.proc.poll()
+            code = standby.child.poll()
             if code is not None:
                 why = f'the standby had exited ({code})'
-            elif standby.env != _fixed(env):
-                changed = sorted(set(standby.env.items()) ^ set(_fixed(env).items()))
-                why = f'the environment changed ({", ".join(sorted({k for k, _ in changed}))})'
             else:
                 try:
-                    os.write(standby.control,
-                             encode_activation({k: env.get(k, '') for k in ACTIVATION_KEYS}))
+                    os.write(standby.control, activation_line(argv, env, cwd))
                     os.close(standby.control)
                 except OSError as err:
                     why = f'the standby could not be activated ({err})'
                 else:
-                    return WarmChild(standby.proc, warm=True)
+                    return standby.child
             standby.drop()
-        proc = subprocess.Popen(list(argv), env=dict(env), cwd=cwd, start_new_session=True,
-                                preexec_fn=_die_with_supervisor)
-        return WarmChild(proc, warm=False, why_cold=why)
+        try:
+            pid = self.zygote.fork_node(argv, env, cwd)
+        except RoryError as err:
+            proc = self._exec.spawn(argv, env, cwd)
+            return _ExecChild(proc, f'{why}; {err}')
+        return PidChild(pid, warm=False, why_cold=why)
 
     def discard(self, argv: Sequence[str], cwd: Path) -> None:
-        """Drop the command's standby, if any."""
+        """This command no longer wants a standby; the shared one goes once none does."""
+        drop = []
         with self._lock:
-            standby = self._standbys.pop(_key(argv, cwd), None)
-        if standby is not None:
-            standby.done.set()
+            for signature, standby in list(self._standbys.items()):
+                standby.wanted_by.discard(_key(argv, cwd))
+                if not standby.wanted_by:
+                    drop.append(self._standbys.pop(signature))
+        for standby in drop:
             standby.drop()
 
     def close(self) -> None:
-        """Drop every standby."""
+        """Drop every standby and end the zygote."""
         with self._lock:
             standbys, self._standbys = list(self._standbys.values()), {}
         for standby in standbys:
-            standby.done.set()
             standby.drop()
+        if self.zygote is not None:
+            self.zygote.close()
+
+
+class _ExecChild:
+    """A node started with exec (not forkable): always cold."""
+
+    def __init__(self, proc: Child, why: str) -> None:
+        self._proc = proc
+        self.warm = False
+        self.why_cold = why
+
+    @property
+    def pid(self) -> int:
+        return self._proc.pid
+
+    def wait(self, timeout: float | None = None) -> int:
+        return self._proc.wait(timeout)
+
+    def poll(self) -> int | None:
+        return self._proc.poll()
+
+    def send_signal(self, sig: int) -> None:
+        self._proc.send_signal(sig)

@@ -35,7 +35,7 @@ from std_msgs.msg import String, UInt8MultiArray
 
 from .. import protocol
 from ..dds import fast_rediscovery_env
-from ..errors import ProtocolError
+from ..errors import ProtocolError, RoryError
 from ..fsutil import make_private_dir
 from ..inflight import read_beat, slot_path
 from ..log import SegmentStore, default_typestore
@@ -53,8 +53,9 @@ from .recovery import Recovery
 from .ring import Capture, Ring, RingContext
 from .run_marker import PreviousRun, RunMarker
 from .safety import SafeState
-from .standby import WarmLauncher
+from .standby import ForkLauncher
 from .states import LOG_PREFIX, NodeState, NodeStateMachine, StateEvent
+from .zygote import Zygote, forkable
 
 _logger = logging.getLogger('rory.supervisor')
 
@@ -788,7 +789,10 @@ class Supervisor:
         self.ros_args = tuple(ros_args)
         self.secret = secrets.token_bytes(32)  # this run's key (protocol.ENV_SECRET)
         self.start_mode = start
-        self.launcher: Launcher = launcher or WarmLauncher()
+        # Made in run(), before rclpy.init: the zygote must be forked from a process that
+        # has no participant and no thread of its own yet.
+        self.launcher: Launcher = launcher or ForkLauncher(None)
+        self._own_launcher = launcher is None
         self.events: queue.Queue[Event] = queue.Queue()
         self.nodes: dict[str, ManagedNode] = {}
         self._ring_ctx: RingContext | None = None
@@ -886,13 +890,33 @@ class Supervisor:
         ):
             os.environ.update(fast_rediscovery_env())
 
+    def _start_zygote(self) -> None:
+        """The fork server every node starts from (supervisor/zygote.py): its imports, frozen,
+        shared by every node process and the standby."""
+        programs = [p for p in (forkable(n.command) for n in self.config.nodes) if p]
+        if not programs:
+            return
+        try:
+            zygote = Zygote.start(programs, preload=('rory_runtime.attach',))
+        except (OSError, RoryError) as err:
+            _logger.warning('%s no fork server (%s); every node starts with exec, cold',
+                            LOG_PREFIX, err)
+            return
+        self.launcher = ForkLauncher(zygote)
+
     def run(self) -> int:
         """Supervise until stopped. Returns the process exit code."""
         self._apply_dds_settings()
-        # Its log goes to /rosout through rclpy (RosoutHandler); the console already has it.
-        rclpy.init(args=['rory', '--ros-args', '--disable-stdout-logs',
-                         *own_ros_args(self.ros_args)],
-                   signal_handler_options=SignalHandlerOptions.NO)
+        if self._own_launcher:
+            self._start_zygote()
+        try:
+            # Its log goes to /rosout through rclpy (RosoutHandler); the console already has it.
+            rclpy.init(args=['rory', '--ros-args', '--disable-stdout-logs',
+                             *own_ros_args(self.ros_args)],
+                       signal_handler_options=SignalHandlerOptions.NO)
+        except BaseException:
+            self.launcher.close()
+            raise
         self.ros_node = Node(SUPERVISOR_NODE)
         # Its nodes' topics live under its own namespace: a supervisor per robot, same config.
         self.channel = protocol.channel(self.ros_node.get_namespace())
@@ -901,6 +925,7 @@ class Supervisor:
             self.config = apply_parameters(self.ros_node, self.config)
             marker, resume, down_since = self._claim_store()
         except BaseException:
+            self.launcher.close()
             self.ros_node.destroy_node()
             rclpy.utilities.try_shutdown()
             raise

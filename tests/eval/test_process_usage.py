@@ -30,8 +30,8 @@ def test_thread_kinds_drop_instance_numbers_and_ports() -> None:
 def test_roles_come_from_the_command_line() -> None:
     python = sys.executable
     assert role_of([python, '-m', 'rory_runtime.cli', 'supervise', 'x.yaml']) == 'supervisor'
-    assert role_of([python, '-m', 'rory_runtime.standby', '--control-fd', '3', '--',
-                    'node.py']) == 'standby'
+    assert role_of(['rory-standby']) == 'standby'
+    assert role_of(['rory-zygote']) == 'zygote'
     assert role_of([python, 'targets/amcl/amcl_node.py', '--ros-args']) == 'node'
     # A node merely named like a command is still the node.
     assert role_of([python, 'supervise.py']) == 'node'
@@ -99,12 +99,12 @@ def test_the_sampler_splits_cpu_by_role_and_by_half() -> None:
 
 def test_a_real_process_tree_is_read() -> None:
     # A parent that waits for its child, and a child named like a standby that burns CPU for 0.6 s.
-    busy = ('import time,sys\nend=time.process_time()+0.6\n'
+    busy = ('import time,sys,setproctitle\nsetproctitle.setproctitle("rory-standby")\n'
+            'end=time.process_time()+0.6\n'
             'while time.process_time()<end: pass\ntime.sleep(30)')
     parent = subprocess.Popen([sys.executable, '-c',
                                'import subprocess,sys,time\n'
-                               f'subprocess.Popen([sys.executable, "-c", {busy!r}, '
-                               '"rory_runtime.standby"]).wait()'])
+                               f'subprocess.Popen([sys.executable, "-c", {busy!r}]).wait()'])
     try:
         sampler = TreeSampler(parent.pid)
         sampler.start()

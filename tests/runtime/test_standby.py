@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 
 from rory_runtime.standby import (
+    Activation,
     Program,
     StandbyError,
     absorb_init,
-    encode_activation,
     foreign_imports,
     read_activation,
     warm_imports,
@@ -82,15 +82,22 @@ def test_warm_imports_never_import_a_module_that_decorates_a_node(
 
 def test_activation_round_trip_and_end_of_file() -> None:
     r, w = os.pipe()
-    os.write(w, encode_activation({'RORY_INCARNATION': '3'}))
-    assert read_activation(r) == {'RORY_INCARNATION': '3'}
+    activation = Activation(('python', 'n.py', 'x'), {'RORY_INCARNATION': '3'}, '/work')
+    os.write(w, activation.encode())
+    assert read_activation(r) == activation
     os.close(w)
     assert read_activation(r) is None
     os.close(r)
 
 
-@pytest.mark.parametrize('line', [b'not json\n', b'{"env": [1]}\n', b'{"env": {"a": 1}}\n',
-                                  b'{}\n'])
+@pytest.mark.parametrize('line', [
+    b'not json\n', b'{}\n',
+    b'{"argv": ["p"], "env": [1], "cwd": "/"}\n',
+    b'{"argv": ["p"], "env": {"a": 1}, "cwd": "/"}\n',
+    b'{"argv": [], "env": {}, "cwd": "/"}\n',
+    b'{"argv": ["p", 2], "env": {}, "cwd": "/"}\n',
+    b'{"argv": ["p"], "env": {}, "cwd": 3}\n',
+])
 def test_a_bad_activation_is_refused(line: bytes) -> None:
     r, w = os.pipe()
     os.write(w, line)

@@ -1,21 +1,28 @@
-"""WarmLauncher with real standby processes (rclpy, a DDS participant) and a small program."""
+"""ForkLauncher with a real zygote, real standbys (rclpy, a DDS participant) and a small
+program: what a node forked from the supervisor's fork server sees."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
+import subprocess
 import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from rory_runtime.protocol import ENV_INCARNATION, ENV_MODE, ENV_QUARANTINE
-from rory_runtime.supervisor.standby import WarmLauncher, standby_command
+from rory_runtime.supervisor.zygote import forkable, init_signature, ros_arguments
+
+pytestmark = pytest.mark.ros
 
 PROGRAM = '''
-import json, os, sys
+import json, os, sys, time
 import rclpy
 from rclpy.node import Node
 
@@ -23,11 +30,18 @@ def main():
     rclpy.init()
     node = Node('real_node')
     names = node.get_node_names()
+    deadline = time.monotonic() + 10
+    while os.environ.get('WAIT_FOR_NODE', 'real_node') not in names and time.monotonic() < deadline:
+        time.sleep(0.05)
+        names = node.get_node_names()
     out = {
         'name': __name__, 'argv': sys.argv, 'path0': sys.path[0],
         'incarnation': os.environ.get('RORY_INCARNATION'),
-        'mode': os.environ.get('RORY_MODE'), 'pid': os.getpid(),
-        'nodes': names,
+        'mode': os.environ.get('RORY_MODE'), 'pid': os.getpid(), 'ppid': os.getppid(),
+        'cwd': os.getcwd(), 'nodes': names, 'sid': os.getsid(0),
+        'threads': sorted(open(f'/proc/self/task/{t}/comm').read().strip()
+                          for t in os.listdir('/proc/self/task')),
+        'cmdline': open('/proc/self/cmdline', 'rb').read().split(b'\\0')[0].decode(),
     }
     with open(sys.argv[1], 'w') as f:
         json.dump(out, f)
@@ -40,11 +54,42 @@ if __name__ == '__main__':
 '''
 
 
+class Host:
+    """The launcher in its own fresh process (launcher_host.py)."""
+
+    def __init__(self, domain: int) -> None:
+        env = {**os.environ, 'ROS_DOMAIN_ID': str(domain),
+               'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+        self.proc = subprocess.Popen(
+            [sys.executable, str(Path(__file__).with_name('launcher_host.py'))], env=env,
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+    def ask(self, op: str, **fields: Any) -> dict[str, Any]:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(json.dumps({'op': op, **fields}) + '\n')
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        assert line, f'the launcher host ended ({self.proc.wait()})'
+        return dict(json.loads(line))
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            with contextlib.suppress(OSError, AssertionError):
+                self.ask('close')
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
 @pytest.fixture
-def launcher() -> Iterator[WarmLauncher]:
-    made = WarmLauncher()
-    yield made
-    made.close()
+def launcher(ros_domain: int) -> Iterator[Host]:
+    host = Host(ros_domain)
+    try:
+        yield host
+    finally:
+        host.close()
 
 
 def _env(ros_domain: int, incarnation: int) -> dict[str, str]:
@@ -56,42 +101,48 @@ def _env(ros_domain: int, incarnation: int) -> dict[str, str]:
     return env
 
 
-def _wait_ready(launcher: WarmLauncher, argv: list[str], cwd: Path) -> None:
-    standby = launcher.standby(argv, cwd)
-    assert standby is not None
+def _wait_ready(launcher: Host, argv: list[str], cwd: Path) -> None:
     deadline = time.monotonic() + 30
-    while standby.ready_at is None:
-        assert standby.proc.poll() is None, 'the standby died while warming up'
+    while True:
+        standby = launcher.ask('standby', argv=argv, cwd=str(cwd))
+        assert standby['pid'] is not None
+        if standby['ready']:
+            return
+        assert standby['alive'], 'the standby died while warming up'
         assert time.monotonic() < deadline
         time.sleep(0.02)
 
 
 def test_a_prepared_standby_becomes_the_program(
-    tmp_path: Path, ros_domain: int, launcher: WarmLauncher
+    tmp_path: Path, ros_domain: int, launcher: Host
 ) -> None:
     (tmp_path / 'prog').mkdir()
     script = tmp_path / 'prog' / 'node.py'
     script.write_text(PROGRAM)
     out = tmp_path / 'out.json'
     argv = [sys.executable, str(script), str(out), '3']
-    pid = launcher.prepare(argv, _env(ros_domain, 2), tmp_path)
+    pid = launcher.ask('prepare', argv=argv, env=_env(ros_domain, 2), cwd=str(tmp_path))['pid']
     assert pid is not None
     _wait_ready(launcher, argv, tmp_path)
-    child = launcher.spawn(argv, _env(ros_domain, 7), tmp_path)
-    assert child.pid == pid and child.warm is True
-    assert child.wait(timeout=30) == 3  # sys.exit(main()) as with python node.py
+    child = launcher.ask('spawn', argv=argv, env=_env(ros_domain, 7), cwd=str(tmp_path))
+    assert child['pid'] == pid and child['warm'] is True
+    # sys.exit(main()) as with python node.py
+    assert launcher.ask('wait', pid=pid, timeout=30)['code'] == 3
     seen = json.loads(out.read_text())
     assert seen['name'] == '__main__'
     assert seen['argv'] == [str(script), str(out), '3']
     assert seen['path0'] == str(script.parent)
     assert seen['incarnation'] == '7'  # the activation's, not the preparation's
+    # This process's child, in a session of its own, showing its own command line.
+    assert seen['ppid'] == child['host'] and seen['sid'] == seen['pid']
+    assert seen['cmdline'].endswith(f'{script} {out} 3')
     # The program's rclpy.init() was absorbed and its node replaced the placeholder.
     assert 'real_node' in seen['nodes']
     assert not [n for n in seen['nodes'] if n.startswith('_rory_standby_')]
 
 
 def test_a_module_program_runs_as_python_dash_m_would(
-    tmp_path: Path, ros_domain: int, launcher: WarmLauncher
+    tmp_path: Path, ros_domain: int, launcher: Host
 ) -> None:
     package = tmp_path / 'prog_pkg'
     package.mkdir()
@@ -99,74 +150,116 @@ def test_a_module_program_runs_as_python_dash_m_would(
     (package / 'node.py').write_text(PROGRAM)
     out = tmp_path / 'out.json'
     argv = [sys.executable, '-m', 'prog_pkg.node', str(out), '0']
-    launcher.prepare(argv, _env(ros_domain, 2), tmp_path)
+    launcher.ask('prepare', argv=argv, env=_env(ros_domain, 2), cwd=str(tmp_path))
     _wait_ready(launcher, argv, tmp_path)
-    child = launcher.spawn(argv, _env(ros_domain, 3), tmp_path)
-    assert child.warm is True
-    assert child.wait(timeout=30) == 0
+    child = launcher.ask('spawn', argv=argv, env=_env(ros_domain, 3), cwd=str(tmp_path))
+    assert child['warm'] is True
+    assert launcher.ask('wait', pid=child['pid'], timeout=30)['code'] == 0
     seen = json.loads(out.read_text())
     assert seen['name'] == '__main__' and seen['incarnation'] == '3'
     assert seen['argv'] == [str(package / 'node.py'), str(out), '0']
 
 
-def test_a_changed_environment_starts_cold_and_says_why(
-    tmp_path: Path, ros_domain: int, launcher: WarmLauncher
+def test_another_init_forks_cold_and_keeps_the_standby_for_the_nodes_it_fits(
+    tmp_path: Path, ros_domain: int, launcher: Host
 ) -> None:
     script = tmp_path / 'node.py'
     script.write_text(PROGRAM)
     argv = [sys.executable, str(script), str(tmp_path / 'out.json'), '0']
-    standby_pid = launcher.prepare(argv, _env(ros_domain, 2), tmp_path)
-    env = _env(ros_domain, 3)
-    env['SOMETHING_ELSE'] = 'changed'
-    child = launcher.spawn(argv, env, tmp_path)
-    assert child.warm is False and child.pid != standby_pid
-    assert 'SOMETHING_ELSE' in child.why_cold
-    assert child.wait(timeout=60) == 0
-    assert json.loads((tmp_path / 'out.json').read_text())['incarnation'] == '3'
-    assert standby_pid is not None
-    with pytest.raises(ChildProcessError):  # killed and reaped, not left behind
-        os.waitpid(standby_pid, os.WNOHANG)
+    standby = launcher.ask('prepare', argv=argv, env=_env(ros_domain, 2), cwd=str(tmp_path))
+    other = [*argv, '--ros-args', '-r', '__node:=other']
+    child = launcher.ask('spawn', argv=other, env=_env(ros_domain, 3), cwd=str(tmp_path))
+    assert child['warm'] is False and child['pid'] != standby['pid']
+    assert child['why_cold'] == 'no standby waiting'
+    assert launcher.ask('wait', pid=child['pid'], timeout=60)['code'] == 0
+    seen = json.loads((tmp_path / 'out.json').read_text())
+    assert seen['incarnation'] == '3' and seen['ppid'] == child['host']
+    assert launcher.ask('standby', argv=argv, cwd=str(tmp_path))['pid'] == standby['pid']
 
 
-def test_a_dead_standby_is_not_used(
-    tmp_path: Path, ros_domain: int, launcher: WarmLauncher
+def test_one_standby_serves_every_node_with_the_same_init(
+    tmp_path: Path, ros_domain: int, launcher: Host
 ) -> None:
     script = tmp_path / 'node.py'
     script.write_text(PROGRAM)
+    first = [sys.executable, str(script), str(tmp_path / 'a.json'), '0']
+    second = [sys.executable, str(script), str(tmp_path / 'b.json'), '0']
+    pid = launcher.ask('prepare', argv=first, env=_env(ros_domain, 2), cwd=str(tmp_path))['pid']
+    again = launcher.ask('prepare', argv=second, env=_env(ros_domain, 5), cwd=str(tmp_path))
+    assert again['pid'] == pid
+    _wait_ready(launcher, second, tmp_path)
+    child = launcher.ask('spawn', argv=second, env=_env(ros_domain, 6), cwd=str(tmp_path))
+    assert child['pid'] == pid and child['warm'] is True
+    assert launcher.ask('wait', pid=pid, timeout=30)['code'] == 0
+    assert json.loads((tmp_path / 'b.json').read_text())['incarnation'] == '6'
+    # Used: the next start of either is cold until a new one is prepared.
+    assert launcher.ask('standby', argv=first, cwd=str(tmp_path))['pid'] is None
+
+
+def test_a_dead_standby_is_not_used(tmp_path: Path, ros_domain: int, launcher: Host) -> None:
+    script = tmp_path / 'node.py'
+    script.write_text(PROGRAM)
     argv = [sys.executable, str(script), str(tmp_path / 'out.json'), '0']
-    launcher.prepare(argv, _env(ros_domain, 2), tmp_path)
-    standby = launcher.standby(argv, tmp_path)
-    assert standby is not None
-    standby.proc.kill()
-    standby.proc.wait()
-    child = launcher.spawn(argv, _env(ros_domain, 3), tmp_path)
-    assert child.warm is False
-    assert 'had exited' in child.why_cold
-    assert child.wait(timeout=60) == 0
+    launcher.ask('prepare', argv=argv, env=_env(ros_domain, 2), cwd=str(tmp_path))
+    assert launcher.ask('kill_standby', argv=argv, cwd=str(tmp_path))['code'] == -signal.SIGKILL
+    child = launcher.ask('spawn', argv=argv, env=_env(ros_domain, 3), cwd=str(tmp_path))
+    assert child['warm'] is False and 'had exited' in child['why_cold']
+    assert launcher.ask('wait', pid=child['pid'], timeout=60)['code'] == 0
 
 
-def test_close_ends_every_standby(tmp_path: Path, ros_domain: int, launcher: WarmLauncher) -> None:
+def test_a_forked_node_has_none_of_the_supervisors_threads_or_participant(
+    tmp_path: Path, ros_domain: int, launcher: Host
+) -> None:
+    # The host runs a participant and an executor thread, as the supervisor does, when the
+    # node is forked: the node gets a participant of its own and only its own threads.
+    launcher.ask('participant', name='supervisor_like')
+    script = tmp_path / 'node.py'
+    script.write_text(PROGRAM)
+    argv = [sys.executable, str(script), str(tmp_path / 'out.json'), '0']
+    env = {**_env(ros_domain, 1), 'WAIT_FOR_NODE': 'supervisor_like'}
+    child = launcher.ask('spawn', argv=argv, env=env, cwd=str(tmp_path))
+    assert launcher.ask('wait', pid=child['pid'], timeout=60)['code'] == 0
+    seen = json.loads((tmp_path / 'out.json').read_text())
+    # A participant of its own, which found the host's over DDS.
+    assert {'real_node', 'supervisor_like'} <= set(seen['nodes'])
+    assert 'rory-ros' not in seen['threads']
+
+
+def test_close_ends_every_standby_and_the_zygote(
+    tmp_path: Path, ros_domain: int, launcher: Host
+) -> None:
     script = tmp_path / 'node.py'
     script.write_text(PROGRAM)
     argv = [sys.executable, str(script), 'x', '0']
-    launcher.prepare(argv, _env(ros_domain, 2), tmp_path)
-    standby = launcher.standby(argv, tmp_path)
-    assert standby is not None
-    launcher.close()
-    assert standby.proc.poll() is not None
-    assert launcher.standby(argv, tmp_path) is None
+    pid = launcher.ask('prepare', argv=argv, env=_env(ros_domain, 2), cwd=str(tmp_path))['pid']
+    assert launcher.ask('close')['zygote_reaped'] is True
+    launcher.proc.wait(timeout=20)
+    assert not Path(f'/proc/{pid}').exists()  # the standby is gone, reaped
+
+
+def test_a_command_that_is_not_a_python_program_is_started_with_exec(
+    tmp_path: Path, launcher: Host
+) -> None:
+    argv = ['/bin/sh', '-c', 'exit 4']
+    child = launcher.ask('spawn', argv=argv, env=dict(os.environ), cwd=str(tmp_path))
+    assert child['warm'] is False and 'not a python' in child['why_cold']
+    assert launcher.ask('wait', pid=child['pid'], timeout=10)['code'] == 4
+    prepared = launcher.ask('prepare', argv=argv, env=dict(os.environ), cwd=str(tmp_path))
+    assert prepared['pid'] is None
 
 
 @pytest.mark.parametrize('argv', [
     ['/usr/bin/env', 'node'], ['python'], ['python', '-u', 'node.py'], ['python', '-c', 'x'],
 ])
-def test_only_plain_python_programs_get_a_standby(argv: list[str]) -> None:
-    assert standby_command(argv, control_fd=3, ready_fd=4) is None
+def test_only_plain_python_programs_are_forked(argv: list[str]) -> None:
+    assert forkable(argv) is None
 
 
-def test_the_standby_command_keeps_the_programs_arguments() -> None:
-    assert standby_command(['python3', '-m', 'pkg.node', '--ros-args'], control_fd=5,
-                           ready_fd=6) == [
-        'python3', '-m', 'rory_runtime.standby', '--control-fd', '5', '--ready-fd', '6', '--',
-        '-m', 'pkg.node', '--ros-args',
-    ]
+def test_nodes_share_a_standby_when_their_ros_arguments_and_dds_environment_agree() -> None:
+    program = forkable(['python', 'node.py', 'a', '--ros-args', '-p', 'x:=1', '--', 'b'])
+    assert program is not None
+    assert ros_arguments(program.args) == ('-p', 'x:=1')
+    env = {'ROS_DOMAIN_ID': '3', 'RORY_NODE': 'a', 'HOME': '/h'}
+    same = init_signature(program, env)
+    assert init_signature(program, {**env, 'RORY_NODE': 'b', 'HOME': '/x'}) == same
+    assert init_signature(program, {**env, 'ROS_DOMAIN_ID': '4'}) != same

@@ -38,12 +38,14 @@ _CLK_TCK = float(os.sysconf('SC_CLK_TCK'))
 def role_of(cmdline: Sequence[str]) -> str:
     """'supervisor', 'zygote', 'standby' or 'node', from a process's command line (a fork of
     the zygote names itself: rory_runtime/supervisor/zygote.py)."""
-    first = cmdline[0] if cmdline else ''
+    # A process whose title setproctitle touched shows its command line as one string.
+    words = ' '.join(cmdline).split()
+    first = words[0] if words else ''
     if first == ZYGOTE_TITLE:
         return 'zygote'
     if first == STANDBY_TITLE:
         return 'standby'
-    if 'rory_runtime.cli' in cmdline and 'supervise' in cmdline:
+    if 'rory_runtime.cli' in words and 'supervise' in words:
         return 'supervisor'
     return 'node'
 

@@ -37,6 +37,7 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
@@ -97,6 +98,11 @@ class RingContext:
                 signal_handler_options=SignalHandlerOptions.NO,
             )
         self.context = context
+        # One hidden node holds every reader, never spun: only its graph queries are used, so
+        # it offers no parameter, rosout or type-description service. Each of those is DDS
+        # endpoints that every participant on the robot discovers and keeps (a node per
+        # reader, as the ring had when an executor spun each topic's, was 16 endpoints each).
+        self.node = quiet_node('_rory_ring', context)
         self._active: list[RingTopic] = []
         self._lock = threading.Lock()
         self._guard = GuardCondition(None, None, context=context)
@@ -162,6 +168,7 @@ class RingContext:
         self._thread.join(timeout=2.0)
         with contextlib.suppress(InvalidHandle):
             self._guard.destroy()
+        self.node.destroy_node()
         if self._owns_context and self.context.ok():
             self.context.try_shutdown()
 
@@ -169,14 +176,12 @@ class RingContext:
 class RingTopic:
     """The supervisor's reader of one input topic of one node."""
 
-    def __init__(self, ring_ctx: RingContext, node_id: str, index: int, spec: InputSpec) -> None:
+    def __init__(self, ring_ctx: RingContext, spec: InputSpec) -> None:
         self.spec = spec
         self.depth = ring_depth(spec)
         self._ctx = ring_ctx
         msg_type = get_message_class(spec.msgtype)
-        # One rclpy node per topic: its own place in the graph, for the publisher count and
-        # the offered QoS; nothing spins it.
-        self.node = Node(f'_rory_ring_{node_id}_{index}', context=ring_ctx.context)
+        self.node = ring_ctx.node
         qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
             depth=self.depth,
@@ -277,7 +282,15 @@ class RingTopic:
         self.deactivate()
         with self._lock:
             self._taker.close()
-        self.node.destroy_node()
+        self.node.destroy_subscription(self.sub)
+
+
+def quiet_node(name: str, context: Context | None = None) -> Node:
+    """A hidden node with no service or publisher of its own beyond what rclpy always makes
+    (its parameter-events publisher): no parameter services, no /rosout, no
+    ~/get_type_description."""
+    return Node(name, context=context, start_parameter_services=False, enable_rosout=False,
+                parameter_overrides=[Parameter('start_type_description_service', value=False)])
 
 
 def _never_called(_raw: bytes, _info: Any) -> None:
@@ -302,7 +315,7 @@ class Ring:
                 continue
             if current is not None:
                 current.destroy()
-            self.topics[spec.topic] = RingTopic(self._ctx, self.node_id, len(self.topics), spec)
+            self.topics[spec.topic] = RingTopic(self._ctx, spec)
 
     def publisher_count(self, topic: str) -> int:
         """Publishers the reader of ``topic`` is matched with (0 without a reader)."""

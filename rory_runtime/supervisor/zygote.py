@@ -337,10 +337,11 @@ def _become_standby(request: dict[str, Any], control: int, ready: int) -> int:
     import rclpy
     from rclpy.node import Node
 
+    from .ring import quiet_node
+
     init_args = list(request['init_args'])
     rclpy.init(args=init_args)
-    placeholder = Node(f'{PLACEHOLDER_PREFIX}{os.getpid()}', start_parameter_services=False,
-                       enable_rosout=False)
+    placeholder = quiet_node(f'{PLACEHOLDER_PREFIX}{os.getpid()}')
     os.write(ready, b'R')
     os.close(ready)
     try:

@@ -30,6 +30,7 @@ def test_thread_kinds_drop_instance_numbers_and_ports() -> None:
 def test_roles_come_from_the_command_line() -> None:
     python = sys.executable
     assert role_of([python, '-m', 'rory_runtime.cli', 'supervise', 'x.yaml']) == 'supervisor'
+    assert role_of([f'{python} -m rory_runtime.cli supervise x.yaml']) == 'supervisor'
     assert role_of(['rory-standby']) == 'standby'
     assert role_of(['rory-zygote']) == 'zygote'
     assert role_of([python, 'targets/amcl/amcl_node.py', '--ros-args']) == 'node'

@@ -179,11 +179,42 @@ def warm_imports(program: Program) -> list[str]:
 
 
 def _load_type_support(msgtype: Any) -> None:
-    # rclpy loads a type's C support the first time an entity uses it (~ms each).
-    load = getattr(type(msgtype), '__import_type_support__', None) if msgtype else None
-    if load is not None:
-        with contextlib.suppress(Exception):  # loaded again, with its real error, when used
-            load()
+    # rclpy loads a type's C support the first time an entity uses it (~ms each): its
+    # libraries, whose relocated pages a process forked before the load would each hold
+    # privately (~1-2 MB a type). A service's request, response and event are types too.
+    if msgtype is None:
+        return
+    for part in (msgtype, *(getattr(msgtype, name, None) for name in ('Request', 'Response',
+                                                                       'Event'))):
+        load = getattr(type(part), '__import_type_support__', None) if part else None
+        if load is not None:
+            with contextlib.suppress(Exception):  # loaded again, with its real error, when used
+                load()
+
+
+RCLPY_TYPES = (
+    ('rcl_interfaces.srv', ('ListParameters', 'GetParameters', 'SetParameters',
+                            'SetParametersAtomically', 'DescribeParameters',
+                            'GetParameterTypes')),
+    ('rcl_interfaces.msg', ('ParameterEvent', 'Log')),
+    ('type_description_interfaces.srv', ('GetTypeDescription',)),
+    ('rosgraph_msgs.msg', ('Clock',)),
+    ('std_msgs.msg', ('String', 'UInt8MultiArray')),
+)
+"""Types every supervised node uses whatever its program: rclpy's parameter services,
+~/get_type_description, /rosout, /parameter_events and /clock; RORY's status and shadow
+topics."""
+
+
+def load_type_supports(types: Sequence[tuple[str, Sequence[str]]] = RCLPY_TYPES) -> None:
+    """Load the C type support of ``types`` (module, names) into this process now."""
+    for module_name, names in types:
+        try:
+            module = importlib.import_module(module_name)
+        except ImportError:
+            continue
+        for name in names:
+            _load_type_support(getattr(module, name, None))
 
 
 # -- activation ---------------------------------------------------------------------------------

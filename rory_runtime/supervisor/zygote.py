@@ -62,6 +62,7 @@ from ..standby import (
     StandbyError,
     absorb_init,
     drop_placeholder_after_first_node,
+    load_type_supports,
     read_activation,
     run_program,
     warm_imports,
@@ -409,6 +410,10 @@ class Zygote:
         from ..log import default_typestore
 
         default_typestore()
+        # Loaded after the fork, rclpy's own types (parameter services, /rosout, ...) cost
+        # every node and standby ~20 MB of private pages; loaded here, they share them
+        # (measured: a forked node's private memory 33 MB against 11).
+        load_type_supports()
         gc.collect()
         gc.freeze()
         parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)

@@ -426,7 +426,7 @@ def run(
                     time.sleep(0.005)
                 # While the node still runs.
                 shadow_readers = observer.node.count_subscribers(
-                    protocol.replay_topic(program.node))
+                    protocol.replay_topic(program.node, tracker.incarnation))
     finally:
         observer.close()
         events.poll()

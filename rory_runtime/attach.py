@@ -599,7 +599,7 @@ class NodeRuntime:
             self._shadow_sub = Node.create_subscription(
                 self.node,
                 UInt8MultiArray,
-                protocol.replay_topic(self.env.node_id, self.env.channel),
+                protocol.replay_topic(self.env.node_id, self.env.incarnation, self.env.channel),
                 on_envelope,
                 protocol.REPLAY_QOS,
                 raw=True,
@@ -665,7 +665,8 @@ class NodeRuntime:
         try:
             envelope = protocol.unpack(raw, self.env.secret)
         except ProtocolError as err:
-            shadow = protocol.replay_topic(self.env.node_id, self.env.channel)
+            shadow = protocol.replay_topic(self.env.node_id, self.env.incarnation,
+                                           self.env.channel)
             self._error(f'malformed envelope on {shadow}: {err}')
             return
         if envelope.incarnation != self.env.incarnation:

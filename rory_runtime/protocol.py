@@ -136,9 +136,15 @@ def status_topic(node_id: str, channel: str = DEFAULT_CHANNEL) -> str:
     return f'{channel}/{node_id}/status'
 
 
-def replay_topic(node_id: str, channel: str = DEFAULT_CHANNEL) -> str:
-    """The node's shadow topic."""
-    return f'{channel}/{node_id}/replay'
+def replay_topic(node_id: str, incarnation: int, channel: str = DEFAULT_CHANNEL) -> str:
+    """The shadow topic of one process of a node.
+
+    One per incarnation: the supervisor's writer is keep-all and reliable, so a reader it is
+    matched with holds every sample until that reader acknowledges it, and a reader of a
+    process that died (it stays matched until its DDS lease runs out) never does. A new
+    process's reader is on a topic no dead reader was ever on.
+    """
+    return f'{channel}/{node_id}/replay_{incarnation}'
 
 
 STATUS_QOS: Final = QoSProfile(

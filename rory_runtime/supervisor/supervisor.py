@@ -224,9 +224,12 @@ class ManagedNode:
         self.early_capture: Capture | None = None
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
         self.last_checkpoint_at: float | None = None  # monotonic
-        self.replay_pub = protocol.SignedPublisher(sup.ros_node.create_publisher(
-            UInt8MultiArray, protocol.replay_topic(cfg.name, sup.channel), protocol.REPLAY_QOS
-        ), sup.secret)
+        # The shadow topic of the current process (protocol.replay_topic: one per incarnation),
+        # made at each spawn; earlier ones are destroyed once no replay streams on them.
+        self._replay_writer: Any = None
+        self.replay_pub: protocol.SignedPublisher | None = None
+        self._retired_writers: list[Any] = []
+
         def on_status(msg: Any) -> None:
             sup.post_status(cfg.name, str(msg.data))
 
@@ -277,6 +280,7 @@ class ManagedNode:
         self.sync_nonce = random.getrandbits(63)
         self.synced_counts = None
         self.release_sent = False
+        self._new_shadow_topic()
         env = self._env(mode, self.incarnation)
         child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder)
         self.child = child
@@ -300,6 +304,21 @@ class ManagedNode:
             )
 
         threading.Thread(target=reap, name=f'rory-reap-{self.id}', daemon=True).start()
+
+    def _new_shadow_topic(self) -> None:
+        """A writer on the new incarnation's shadow topic; the last one waits to be retired."""
+        if self._replay_writer is not None:
+            self._retired_writers.append(self._replay_writer)
+        self._replay_writer = self.sup.ros_node.create_publisher(
+            UInt8MultiArray, protocol.replay_topic(self.id, self.incarnation, self.sup.channel),
+            protocol.REPLAY_QOS)
+        self.replay_pub = protocol.SignedPublisher(self._replay_writer, self.sup.secret)
+
+    def _retire_shadow_topics(self) -> None:
+        """Destroy earlier incarnations' writers: no replay streams on them any more."""
+        for writer in self._retired_writers:
+            self.sup.ros_node.destroy_publisher(writer)
+        self._retired_writers.clear()
 
     def start(self) -> None:
         """First start of the node."""
@@ -503,11 +522,12 @@ class ManagedNode:
 
     def _send_sync(self) -> None:
         self.sync_sent = time.monotonic()
+        assert self.replay_pub is not None  # made by spawn()
         self.replay_pub.publish(protocol.pack_sync(self.incarnation, self.sync_nonce))
 
     def _on_synced(self) -> None:
         if self.sm.state == NodeState.REPLAYING and self.recovery is not None:
-            assert self.hello is not None
+            assert self.hello is not None and self.replay_pub is not None
             cut = (self.hello.get('restored') or {}).get('cut')
             incarnation = self.incarnation
             self.recovery.s3_replay(
@@ -599,6 +619,7 @@ class ManagedNode:
             self.recovery.finish()
             self.sup.safety.release(self.id)
             self.recovery = None
+        self._retire_shadow_topics()
 
     def health(self, now: float) -> NodeHealth:
         """This node as /diagnostics shows it."""
@@ -659,6 +680,7 @@ class ManagedNode:
                 self._send_sync()
             elif state == NodeState.ARMING and not self.release_sent and self._armed():
                 self.release_sent = True  # once; the node answers RELEASED
+                assert self.replay_pub is not None  # made by spawn()
                 self.replay_pub.publish(
                     protocol.pack_release(self.incarnation, self.segments.next_number(), 0)
                 )

@@ -49,8 +49,9 @@ def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: i
     try:
         wait_for(lambda: any(e.get('new') == 'RUNNING' for e in events(store)), 30, 'RUNNING')
         incarnation = next(e['incarnation'] for e in events(store) if e['kind'] == 'spawn')
-        shadow = rogue.create_publisher(UInt8MultiArray, protocol.replay_topic('integrator'),
-                                        protocol.REPLAY_QOS)
+        shadow = rogue.create_publisher(
+            UInt8MultiArray, protocol.replay_topic('integrator', incarnation),
+            protocol.REPLAY_QOS)
         status = rogue.create_publisher(String, protocol.status_topic('integrator'),
                                         protocol.STATUS_QOS)
         wait_for(lambda: shadow.get_subscription_count() >= 1

@@ -389,14 +389,14 @@ def test_decode_status_refuses_malformed_text(text: str) -> None:
 
 def test_topic_names() -> None:
     assert status_topic('integrator') == '/rory/integrator/status'
-    assert replay_topic('integrator') == '/rory/integrator/replay'
+    assert replay_topic('integrator', 3) == '/rory/integrator/replay_3'
 
 
 def test_a_supervisor_in_a_namespace_has_its_own_channel() -> None:
     assert channel('/') == '/rory'
     assert channel('/robot1') == '/robot1/rory'
     assert status_topic('amcl', channel('/fleet/robot2')) == '/fleet/robot2/rory/amcl/status'
-    assert replay_topic('amcl', channel('/robot1')) == '/robot1/rory/amcl/replay'
+    assert replay_topic('amcl', 1, channel('/robot1')) == '/robot1/rory/amcl/replay_1'
 
 
 # --------------------------------------------------------------------------- input specs

@@ -14,8 +14,9 @@ for each setting side by side in one run:
   and is SIGKILLed once heard, ``--restarts`` times: the time from its publish to the
   listener's receipt (a cold restart: a new participant; a warm standby's is known already).
 
-Settings: Fast DDS's defaults (lease 20 s, announced every 3 s), RORY's profile, and profiles
-with the same transport and initial announcements but a longer lease (``calm``). All under
+Settings: Fast DDS's defaults (lease 20 s, announced every 3 s), RORY's profile, and RORY's
+profile with other leases and announcement periods (``--leases``): same transport, same initial
+announcements. All under
 ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` as RORY runs it (UDPv4 on 127.0.0.1, 64 initial
 peer ports). Prints a Markdown table and writes ``<out>/dds_fleet.json``.
 """
@@ -52,21 +53,24 @@ rclpy.spin(n)
 _TICK = float(os.sysconf('SC_CLK_TCK'))
 
 
-def profiles(folder: Path) -> dict[str, dict[str, str]]:
-    """Each setting's environment (profile files written to ``folder``)."""
+def profiles(folder: Path, leases: Sequence[tuple[float, float]]) -> dict[str, dict[str, str]]:
+    """Each setting's environment (profile files written to ``folder``): RORY's, and RORY's
+    with each (lease, announcement period) of ``leases``."""
     rory = fast_rediscovery_env({'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'})
     template = Path(rory['FASTRTPS_DEFAULT_PROFILES_FILE']).read_text()
-    settings: dict[str, dict[str, str]] = {'RORY (lease 1 s, every 0.25 s)': rory}
-    for lease, every in ((3, 1.0), (20, 3.0)):
+    settings: dict[str, dict[str, str]] = {'RORY\'s profile': rory}
+    for lease, every in leases:
+        whole, part = int(lease), round((lease % 1) * 1e9)
         text = re.sub(r'<leaseDuration>.*?</leaseDuration>',
-                      f'<leaseDuration><sec>{lease}</sec></leaseDuration>', template)
+                      f'<leaseDuration><sec>{whole}</sec><nanosec>{part}</nanosec>'
+                      '</leaseDuration>', template)
         seconds, nanos = int(every), round((every % 1) * 1e9)
         text = re.sub(r'<leaseAnnouncement>.*?</leaseAnnouncement>',
                       f'<leaseAnnouncement><sec>{seconds}</sec><nanosec>{nanos}</nanosec>'
                       '</leaseAnnouncement>', text)
-        path = folder / f'calm_{lease}s.xml'
+        path = folder / f'lease_{lease:g}s_{every:g}s.xml'
         path.write_text(text)
-        settings[f'calm (lease {lease} s, every {every:g} s)'] = {
+        settings[f'lease {lease:g} s, announced every {every:g} s'] = {
             **rory, 'FASTRTPS_DEFAULT_PROFILES_FILE': str(path)}
     return settings
 
@@ -108,6 +112,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--settle', type=float, default=12.0)
     parser.add_argument('--seconds', type=float, default=20.0)
     parser.add_argument('--restarts', type=int, default=8)
+    parser.add_argument('--leases', nargs='*', default=['3:1', '20:3'], metavar='LEASE:EVERY',
+                        help="RORY's profile with these lease durations and announcement "
+                             'periods (s) beside it')
     parser.add_argument('--domain', type=int, default=87)
     parser.add_argument('--out', help='write dds_fleet.json here')
     args = parser.parse_args(argv)
@@ -116,7 +123,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     folder = Path(tempfile.mkdtemp(prefix='rory-dds-'))
     results: list[dict[str, Any]] = []
     try:
-        settings = {'Fast DDS defaults': {}, **profiles(folder)}
+        try:
+            leases = [tuple(float(x) for x in item.split(':')) for item in args.leases]
+        except ValueError:
+            parser.error('--leases takes LEASE:EVERY pairs in seconds, e.g. 3:1')
+        if any(len(pair) != 2 or not 0 < pair[1] < pair[0] for pair in leases):
+            parser.error('--leases: each LEASE:EVERY needs 0 < EVERY < LEASE')
+        settings = {'Fast DDS defaults': {},
+                    **profiles(folder, [(a, b) for a, b in leases])}
         for name, extra in settings.items():
             # Fast DDS's defaults under LOCALHOST: shared memory and UDPv4 (no profile).
             cpu = at_rest(extra, args.participants, args.settle, args.seconds, args.domain)

@@ -5,7 +5,7 @@ speaks UDPv4 only (namespaces share /dev/shm: shared memory must not bypass the 
 discovery range SUBNET. The integrator is SIGKILLed mid-run; with nothing lost or applied
 twice its final history is exactly 1..N (rory_eval.scenario). Two outages of the link during
 the recovery show where the network's own guarantee ends, and that RORY reports it: its Fast
-DDS profile (rory_runtime/dds/fast_rediscovery.xml) declares a participant gone after a 1 s
+DDS profile (rory_runtime/dds/fast_rediscovery.xml) declares a participant gone after a 3 s
 lease, so a shorter outage is bridged by DDS's reliable resends, and a longer one makes the
 publisher drop the readers on host a, and with them every number it sends until the hosts
 rediscover each other."""
@@ -22,7 +22,7 @@ from rory_eval.multihost_bench import HostRun, Outage, run_on_hosts
 
 pytestmark = pytest.mark.ros
 
-COUNT = 225  # 4.5 s at 50 Hz: numbers still flow after the recovery and after the outage
+COUNT = 375  # 7.5 s at 50 Hz: numbers still flow after the recovery and after the outage
 RATE = 50.0
 # Seconds after the first number: by then the node's warm standby (started 1 s after the node,
 # ready 0.5-1.6 s later here) is ready, so the replacement is its usual fast self.
@@ -79,7 +79,7 @@ def test_short_link_outage_during_recovery_is_exact(
     hosts: Hosts, tmp_path: Path, ros_domain: int
 ) -> None:
     # Killed before its first checkpoint (every 6 s): the replacement replays ~2 s of numbers,
-    # paced, and the link is down for 0.6 s from its spawn on (less than the 1 s lease).
+    # paced, and the link is down for 0.6 s from its spawn on (less than the 3 s lease).
     run = _run(hosts, tmp_path, ros_domain, kill_at=KILL_AT, interval=6.0, outage=Outage(0.6))
     recovered = _recovered(run)
     _assert_link_was_the_path(run)
@@ -94,10 +94,10 @@ def test_short_link_outage_during_recovery_is_exact(
 def test_link_outage_longer_than_the_lease_loses_only_what_never_arrived_and_says_so(
     hosts: Hosts, tmp_path: Path, ros_domain: int
 ) -> None:
-    # The same, with the link down for 1.5 s. After 1 s without a word from host a the
+    # The same, with the link down for 4 s. After 3 s without a word from host a the
     # publisher on b drops its readers there (lease expired); what it sends until they are
     # matched again is delivered to nobody on host a (volatile: a new match gets no history).
-    run = _run(hosts, tmp_path, ros_domain, kill_at=KILL_AT, interval=6.0, outage=Outage(1.5))
+    run = _run(hosts, tmp_path, ros_domain, kill_at=KILL_AT, interval=6.0, outage=Outage(4.0))
     _recovered(run)
     _assert_link_was_the_path(run)
     assert run.link_down is not None and run.link_up is not None
@@ -105,12 +105,13 @@ def test_link_outage_longer_than_the_lease_loses_only_what_never_arrived_and_say
     history = run.result.history
     assert history == sorted(set(history)), 'applied twice or out of order'
     missing = sorted(set(range(1, COUNT + 1)) - set(history))
-    assert missing, 'a 1.5 s outage lost nothing: has the lease changed?'
+    assert missing, 'a 4 s outage lost nothing: has the lease changed?'
     # One run of numbers, published (at RATE from number 1 on) while the link was down or
     # before the hosts had rediscovered each other - the ones DDS dropped, nothing of RORY's.
     assert missing == list(range(missing[0], missing[-1] + 1))
     published = [run.published_from + (n - 1) / RATE for n in (missing[0], missing[-1])]
-    assert run.link_down - 0.1 <= published[0] and published[1] <= run.link_up + 1.0
+    # Rediscovery after the link is back takes up to an announcement period (1 s) and more.
+    assert run.link_down - 0.1 <= published[0] and published[1] <= run.link_up + 2.0
     # The observer on host a never got them either: they did not reach the host.
     assert not set(missing) & {n for _, n in run.numbers_seen}
     # RORY cannot bring back what never reached its host (a node that had not crashed lost

@@ -43,7 +43,7 @@ from rory_eval.simrun import exit_on_sigterm
 CONFIGS = (BARE, 'restart', 'checkpoint', 'replay', 'rory')
 """In the order they add mechanisms."""
 
-ROLES = ('node', 'supervisor', 'standby')
+ROLES = ('node', 'supervisor', 'zygote', 'standby')
 
 
 def run_all(targets: Sequence[str], world: str, runs: int, out: Path, domain: int,
@@ -111,9 +111,9 @@ def summarise(records: dict[tuple[str, str], list[RunRecord]]) -> list[dict[str,
 
 def table(rows: Sequence[dict[str, Any]]) -> str:
     """The Markdown table of :func:`summarise`'s rows."""
-    lines = ['| program | configuration | runs | node | supervisor | standby | all | vs bare | '
-             'whole run | peak RSS | PSS | PSS added |',
-             '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|']
+    lines = ['| program | configuration | runs | node | supervisor | zygote | standby | all '
+             '| vs bare | whole run | peak RSS | PSS | PSS added |',
+             '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|']
 
     def pct(v: float) -> str:
         return '-' if math.isnan(v) else f'{v:.1f}%'

@@ -194,7 +194,7 @@ def overhead_by_process(runs: Sequence[tuple[RunRecord, Path]]) -> str:
                 records = by_cell.get((target, world, method))
                 if not records:
                     continue
-                roles = [r for r in ('node', 'supervisor', 'standby', 'reaped')
+                roles = [r for r in ('node', 'supervisor', 'zygote', 'standby', 'reaped')
                          if any(r in rec.usage_by_role for rec in records)]
                 for role in roles:
                     lines.append(

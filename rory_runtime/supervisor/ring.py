@@ -36,8 +36,6 @@ from rclpy.context import Context
 from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
@@ -48,6 +46,7 @@ from ..msgtypes import get_message_class
 from ..protocol import SEQ_MASK, InputSpec, ring_depth
 from ..qos import offered_qos
 from ..threads import name_this_thread
+from .hidden import quiet_node
 from .rcl_take import SerializedTaker, Taken
 
 _logger = logging.getLogger('rory.supervisor')
@@ -98,10 +97,9 @@ class RingContext:
                 signal_handler_options=SignalHandlerOptions.NO,
             )
         self.context = context
-        # One hidden node holds every reader, never spun: only its graph queries are used, so
-        # it offers no parameter, rosout or type-description service. Each of those is DDS
-        # endpoints that every participant on the robot discovers and keeps (a node per
-        # reader, as the ring had when an executor spun each topic's, was 16 endpoints each).
+        # One hidden node holds every reader, never spun: only its graph queries are used (a
+        # node per reader, as the ring had when an executor spun each topic's, was ~16 DDS
+        # endpoints each).
         self.node = quiet_node('_rory_ring', context)
         self._active: list[RingTopic] = []
         self._lock = threading.Lock()
@@ -283,14 +281,6 @@ class RingTopic:
         with self._lock:
             self._taker.close()
         self.node.destroy_subscription(self.sub)
-
-
-def quiet_node(name: str, context: Context | None = None) -> Node:
-    """A hidden node with no service or publisher of its own beyond what rclpy always makes
-    (its parameter-events publisher): no parameter services, no /rosout, no
-    ~/get_type_description."""
-    return Node(name, context=context, start_parameter_services=False, enable_rosout=False,
-                parameter_overrides=[Parameter('start_type_description_service', value=False)])
 
 
 def _never_called(_raw: bytes, _info: Any) -> None:

@@ -338,7 +338,7 @@ def _become_standby(request: dict[str, Any], control: int, ready: int) -> int:
     import rclpy
     from rclpy.node import Node
 
-    from .ring import quiet_node
+    from .hidden import quiet_node
 
     init_args = list(request['init_args'])
     rclpy.init(args=init_args)

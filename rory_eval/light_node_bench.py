@@ -20,18 +20,17 @@ import argparse
 import json
 import os
 import shutil
-import signal
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 from rory_eval.process_usage import TreeSampler
-from rory_eval.scenario import EXAMPLE, prepare
+from rory_eval.scenario import EXAMPLE, prepare, stop_process
 from rory_eval.simrun import exit_on_sigterm
 
 CONFIGS = ('bare', 'restart', 'checkpoint', 'replay', 'rory')
@@ -41,7 +40,7 @@ ring, no checkpoints; ``rory`` all of it and the warm standby."""
 WARM_UP = 10.0  # s: the node up, its first checkpoints, the standby forked and ready
 
 
-def _plain_env(domain: int) -> dict[str, str]:
+def plain_env(domain: int) -> dict[str, str]:
     """What a user's shell gives a process: ROS's defaults, this run's domain."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(('FASTRTPS_', 'FASTDDS_'))}
     env['ROS_DOMAIN_ID'] = str(domain)
@@ -50,21 +49,11 @@ def _plain_env(domain: int) -> dict[str, str]:
     return env
 
 
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-
-
 def run_once(config: str, workdir: Path, domain: int, seconds: float,
              rate: float) -> dict[str, Any]:
     """One configuration once; its tree's usage per role."""
     workdir.mkdir(parents=True, exist_ok=True)
-    env = _plain_env(domain)
+    env = plain_env(domain)
     if config == 'bare':
         command = [sys.executable, str(EXAMPLE / 'integrator.py')]
         readers = '1'
@@ -92,8 +81,8 @@ def run_once(config: str, workdir: Path, domain: int, seconds: float,
             if publisher.poll() is not None:
                 raise RuntimeError(f'{config}: the publisher ended early ({publisher.poll()})')
         finally:
-            _stop(publisher)
-            _stop(root)
+            stop_process(publisher)
+            stop_process(root)
     roles = {name: {'cpu_percent': round(100.0 * r.cpu_seconds / usage.wall_seconds, 2),
                     'pss_mb': round(r.pss_mb, 1), 'processes': r.processes,
                     # the second half's, per kind of thread (python, rory-io, dds.*)
@@ -150,6 +139,15 @@ def table(summary: dict[str, Any], runs: int) -> str:
     return '\n'.join(lines)
 
 
+def alternating(configs: Sequence[str], runs: int) -> Iterator[tuple[int, str]]:
+    """(run, configuration) in the order the benches run them: every configuration once a run,
+    the order reversed every other run, so that a drift in the machine's load touches them
+    alike."""
+    for i in range(runs):
+        for config in (configs if i % 2 == 0 else list(reversed(configs))):
+            yield i, config
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the bench; print the table."""
     exit_on_sigterm()
@@ -168,15 +166,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error('--runs must be at least 1, --seconds and --rate positive')
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='rory-light-'))
     runs: list[dict[str, Any]] = []
-    configs = [c for c in CONFIGS if c in args.configs]
-    for i in range(args.runs):
-        order = configs if i % 2 == 0 else list(reversed(configs))
-        for config in order:
-            result = run_once(config, root / f'run{i}-{config}', args.domain, args.seconds,
-                              args.rate)
-            runs.append(result)
-            print(f'[{i + 1}/{args.runs}] {config}: {result["cpu_percent"]:.2f} % of a core, '
-                  f'{result["pss_mb"]:.1f} MB PSS', flush=True)
+    for i, config in alternating([c for c in CONFIGS if c in args.configs], args.runs):
+        result = run_once(config, root / f'run{i}-{config}', args.domain, args.seconds,
+                          args.rate)
+        runs.append(result)
+        print(f'[{i + 1}/{args.runs}] {config}: {result["cpu_percent"]:.2f} % of a core, '
+              f'{result["pss_mb"]:.1f} MB PSS', flush=True)
     summary = summarise(runs)
     (root / 'light_node.json').write_text(json.dumps({'runs': runs, 'summary': summary},
                                                      indent=1))

@@ -19,7 +19,6 @@ import argparse
 import json
 import os
 import shutil
-import signal
 import statistics
 import subprocess
 import sys
@@ -29,9 +28,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from rory_eval.light_node_bench import _plain_env
+from rory_eval.light_node_bench import alternating, plain_env
 from rory_eval.process_usage import read_process
-from rory_eval.scenario import Program, prepare
+from rory_eval.scenario import Program, prepare, stop_process
 from rory_eval.simrun import exit_on_sigterm
 
 REPO = Path(__file__).resolve().parent.parent
@@ -90,7 +89,7 @@ def run_once(config: str, workdir: Path, domain: int, rate: float,
              seconds: float) -> dict[str, Any]:
     """One configuration once: the node's CPU per message."""
     workdir.mkdir(parents=True, exist_ok=True)
-    env = _plain_env(domain)
+    env = plain_env(domain)
     if config == 'bare':
         command = [sys.executable, str(SINK / 'scan_sink.py')]
     else:
@@ -118,14 +117,8 @@ def run_once(config: str, workdir: Path, domain: int, rate: float,
             if before is None or after is None:
                 raise RuntimeError(f'{config}: the node ended')
         finally:
-            for proc in (publisher, root):
-                if proc.poll() is None:
-                    proc.send_signal(signal.SIGINT)
-                    try:
-                        proc.wait(timeout=15)
-                    except subprocess.TimeoutExpired:
-                        os.killpg(proc.pid, signal.SIGKILL)
-                        proc.wait()
+            stop_process(publisher)
+            stop_process(root)
     cpu = (after.own_ticks - before.own_ticks) / _TICK
     return {'config': config, 'messages': count, 'cpu_s': cpu, 'wall_s': wall,
             'us_per_message': 1e6 * cpu / count}
@@ -147,14 +140,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error('--runs must be at least 1, --rate and --seconds positive')
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='rory-msgcost-'))
     runs: list[dict[str, Any]] = []
-    for i in range(args.runs):
-        order = CONFIGS if i % 2 == 0 else tuple(reversed(CONFIGS))
-        for config in order:
-            result = run_once(config, root / f'run{i}-{config}', args.domain, args.rate,
-                              args.seconds)
-            runs.append(result)
-            print(f'[{i + 1}/{args.runs}] {config}: {result["us_per_message"]:.1f} us a message',
-                  flush=True)
+    for i, config in alternating(CONFIGS, args.runs):
+        result = run_once(config, root / f'run{i}-{config}', args.domain, args.rate,
+                          args.seconds)
+        runs.append(result)
+        print(f'[{i + 1}/{args.runs}] {config}: {result["us_per_message"]:.1f} us a message',
+              flush=True)
     medians = {c: statistics.median(r['us_per_message'] for r in runs if r['config'] == c)
                for c in CONFIGS}
     (root / 'message_cost.json').write_text(json.dumps({'runs': runs, 'medians': medians},

@@ -72,8 +72,14 @@ def _die_with_supervisor() -> None:
 
 
 class _PopenChild:
-    def __init__(self, proc: subprocess.Popen[bytes]) -> None:
+    """A node process started with exec: always cold (``why_cold`` says why, if the launcher
+    knows)."""
+
+    warm = False
+
+    def __init__(self, proc: subprocess.Popen[bytes], why_cold: str = '') -> None:
         self._proc = proc
+        self.why_cold = why_cold
 
     @property
     def pid(self) -> int:
@@ -99,7 +105,8 @@ class PopenLauncher:
     (PR_SET_PDEATHSIG follows the thread that forked).
     """
 
-    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> Child:
+    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path,
+              why_cold: str = '') -> _PopenChild:
         """Start a node process."""
         proc = subprocess.Popen(
             list(argv),
@@ -108,7 +115,7 @@ class PopenLauncher:
             start_new_session=True,
             preexec_fn=_die_with_supervisor,
         )
-        return _PopenChild(proc)
+        return _PopenChild(proc, why_cold)
 
     def prepare(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> int | None:
         """Nothing to prepare: every start is cold."""

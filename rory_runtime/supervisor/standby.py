@@ -224,8 +224,7 @@ class ForkLauncher:
         """Activate the shared standby if it fits, else fork cold, else exec cold."""
         signature, why = self._forkable(argv, env)
         if signature is None or self.zygote is None:
-            proc = self._exec.spawn(argv, env, cwd)
-            return _ExecChild(proc, why)
+            return self._exec.spawn(argv, env, cwd, why)
         with self._lock:
             standby = self._standbys.pop(signature, None)
         why = 'no standby waiting'
@@ -246,8 +245,7 @@ class ForkLauncher:
         try:
             pid = self.zygote.fork_node(argv, env, cwd)
         except RoryError as err:
-            proc = self._exec.spawn(argv, env, cwd)
-            return _ExecChild(proc, f'{why}; {err}')
+            return self._exec.spawn(argv, env, cwd, f'{why}; {err}')
         return PidChild(pid, warm=False, why_cold=why)
 
     def discard(self, argv: Sequence[str], cwd: Path) -> None:
@@ -269,25 +267,3 @@ class ForkLauncher:
             standby.drop()
         if self.zygote is not None:
             self.zygote.close()
-
-
-class _ExecChild:
-    """A node started with exec (not forkable): always cold."""
-
-    def __init__(self, proc: Child, why: str) -> None:
-        self._proc = proc
-        self.warm = False
-        self.why_cold = why
-
-    @property
-    def pid(self) -> int:
-        return self._proc.pid
-
-    def wait(self, timeout: float | None = None) -> int:
-        return self._proc.wait(timeout)
-
-    def poll(self) -> int | None:
-        return self._proc.poll()
-
-    def send_signal(self, sig: int) -> None:
-        self._proc.send_signal(sig)

@@ -53,7 +53,7 @@ discovery: $(STAMP)
 	$(PY) -m rory_eval.discovery --runs 12
 
 # Every fault kind at random moments, some twice: on the integrator (prints runs, correct, lost,
-# twice; ~4 min); crash storms, 1-5 strikes in a row at drawn gaps, on the integrator (~20 min;
+# twice; ~4 min); crash storms, 1-5 strikes in a row at drawn gaps, on the integrator (~12 min;
 # a wrong schedule is kept in tests/integration/storm_schedules.json); then on five real targets
 # x three worlds in the simulator (~40 min).
 faults: $(STAMP)

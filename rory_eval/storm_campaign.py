@@ -16,7 +16,7 @@ numbers are counted one by one.
 A schedule that goes wrong is written to ``tests/integration/storm_schedules.json``, where
 ``tests/integration/test_storm_campaign.py`` replays every one of them as a regression case.
 
-    python -m rory_eval.storm_campaign --runs 40          # the campaign (~25 min here)
+    python -m rory_eval.storm_campaign --runs 40          # the campaign (~12 min here)
     python -m rory_eval.storm_campaign --issue-schedule 20  # issue 21's schedule, 20 x 4 ways
 """
 

@@ -199,7 +199,8 @@ def _write_tree(src: Path, out: Path, files: dict[str, bytes], manifest: str) ->
 
 
 def instrument_tree(
-    src: str, keyvars_path: str, out: str | None, *, check: bool = False
+    src: str, keyvars_path: str, out: str | None, *, check: bool = False,
+    warn: Callable[[str], None] | None = None,
 ) -> list[ManifestEntry]:
     """Validates keyvars.yaml against SRC and, unless checking, writes OUT.
 
@@ -208,6 +209,7 @@ def instrument_tree(
         keyvars_path: keyvars.yaml.
         out: The output directory, or None to validate only.
         check: Validate only; write nothing even if ``out`` is given.
+        warn: Gets each warning line (``file:line:col: warning: ...``).
 
     Returns:
         One entry per instrumented node, in keyvars.yaml order.
@@ -236,6 +238,9 @@ def instrument_tree(
         result = instrument_source(source, keyvars, rel, display=display, specs=specs,
                                    resolve=tree)
         files[rel] = result.code
+        if warn is not None:
+            for line in result.warnings:
+                warn(line)
         for done in result.classes:
             spec = done.spec
             entry = ManifestEntry(rel, spec.class_name, spec.vars, done.source_sha256,
@@ -295,7 +300,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.out is None and not args.check:
         parser.error('the following arguments are required: -o/--out')
     try:
-        entries = instrument_tree(args.src, args.vars, args.out, check=args.check)
+        entries = instrument_tree(args.src, args.vars, args.out, check=args.check,
+                                  warn=lambda line: print(line, file=sys.stderr))
     except InstrumentError as e:
         print(e, file=sys.stderr)
         return EXIT_INPUT_ERROR

@@ -48,6 +48,7 @@ from rory_instrument.checks import (
     class_qualname,
     collect_module,
 )
+from rory_instrument.clocks import wall_clock_warnings
 from rory_instrument.config import KeyVars, NodeSpec
 from rory_instrument.errors import SourceError
 from rory_instrument.manifest import manifest_digest
@@ -134,10 +135,13 @@ class InstrumentedModule:
     Attributes:
         code: The new source, in the file's own encoding.
         classes: The entries instrumented, in keyvars.yaml order.
+        warnings: Lines to show the user, ``file:line:col: warning: ...`` (clock reads RORY
+            cannot replay, ``rory_instrument.clocks``).
     """
 
     code: bytes
     classes: tuple[InstrumentedClass, ...]
+    warnings: tuple[str, ...] = ()
 
 
 class StripRoryTransformer(cst.CSTTransformer):
@@ -509,6 +513,7 @@ def instrument_source(
     for spec in specs:
         checker.check(spec)
 
+    warnings = wall_clock_warnings(wrapper, shown)
     digest = source_sha256(wrapper)
     binding = runtime_binding(wrapper.module)
     runtime = binding or RUNTIME_MODULE
@@ -538,4 +543,4 @@ def instrument_source(
     result = wrapper.visit(decorate)
     if (decorate.added or added) and binding is None:
         result = result.visit(EnsureRuntimeImportTransformer())
-    return InstrumentedModule(result.bytes, tuple(done))
+    return InstrumentedModule(result.bytes, tuple(done), warnings)

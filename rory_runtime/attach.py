@@ -60,8 +60,9 @@ from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from std_msgs.msg import String, UInt8MultiArray
 
-from . import codec, protocol
+from . import codec, event_clock, protocol
 from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
+from .event_clock import EventClock, Reading
 from .inflight import InFlightSlot, slot_path
 from .log import SegmentStore, SegmentWriter, default_typestore
 from .msgtypes import type_name_of
@@ -453,9 +454,20 @@ class NodeRuntime:
         self.orphans: dict[str, list[protocol.Msg]] = {}
         self._shadow_sub: Subscription | None = None  # the replay topic's reader, until retired
         self.held_timers: list[Timer] = []
+        # The user's timer callbacks by creation order: a logged tick names its timer by index.
+        self.timer_callbacks: list[Callable[[], Any]] = []
+        # Clock readings inside events, recorded and replayed (only when messages are logged).
+        self.clock: EventClock | None = None
+        if self.method.logs:
+            event_clock.install()
+            self.clock = EventClock(self._log_reading, self._readings_unrecorded)
+        # The readings the next replayed event took when it ran live (the streamer sends an
+        # event's clock records just before the event).
+        self._readings: list[Reading] = []
         self.publishers: list[Publisher] = []
         self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0, 'quarantined': 0,
-                      'passed_by_relay': 0}
+                      'passed_by_relay': 0, 'ticks': 0, 'ticks_replayed': 0,
+                      'clock_fallbacks': 0}
         # What the node is applying right now, readable after a crash (poison detection).
         self.inflight = InFlightSlot(slot_path(env.store, env.node_id), env.incarnation)
         self.checkpoints = CheckpointStore(env.store, env.node_id)
@@ -538,11 +550,25 @@ class NodeRuntime:
         if inspect.iscoroutinefunction(callback):
             raise RoryError('async timer callbacks are not supported yet')
 
+        index = len(self.timer_callbacks)
+        self.timer_callbacks.append(callback)
+
         def locked_tick() -> Any:
             if not self.released:
                 return None
             with self.lock:
-                return callback()
+                clock = self.clock
+                if clock is None:
+                    return callback()
+                # Write-ahead, like a message: the tick is in the log before it has any effect.
+                self._write_record(protocol.TIMER_RECORD, time.time_ns(),
+                                   int(event_clock.original_now(timer.clock).nanoseconds), index)
+                self.stats['ticks'] += 1
+                clock.begin_live()
+                try:
+                    return callback()
+                finally:
+                    clock.end()
 
         timer.callback = locked_tick
         timer._rory = True  # type: ignore[attr-defined]
@@ -688,6 +714,14 @@ class NodeRuntime:
         return False
 
     def _from_shadow(self, msg: protocol.Msg) -> None:
+        if msg.topic == protocol.CLOCK_RECORD:
+            self._readings.append(Reading(msg.seq, msg.source_ns, msg.recv_ns))
+            return
+        # What the event took when it ran live (dropped with it if it is skipped).
+        readings, self._readings = self._readings, []
+        if msg.topic == protocol.TIMER_RECORD:
+            self._replay_tick(msg.seq, msg.recv_ns, readings)
+            return
         inp = self.inputs.get(msg.topic)
         if inp is None:
             # The subscription does not exist yet (created later by a replayed callback?).
@@ -712,10 +746,27 @@ class NodeRuntime:
             }
             # Before release every replayed message is already in a sealed segment; relayed
             # ones are not, so the node logs them as it would a live message.
-            self._apply(inp, msg.data, info, msg.ident, log=relayed)
+            self._apply(inp, msg.data, info, msg.ident, readings, log=relayed)
             self.stats['replayed'] += 1
         if relayed:
             self._maybe_switch(msg.topic)
+
+    def _replay_tick(self, index: int, event_ns: int, readings: list[Reading]) -> None:
+        """One logged tick of the user's timer number ``index``, replayed."""
+        if index >= len(self.timer_callbacks):
+            self._error(f'the log has a tick of timer {index}, but the node made '
+                        f'{len(self.timer_callbacks)} timer(s): tick skipped')
+            return
+        callback = self.timer_callbacks[index]
+        clock = self.clock
+        assert clock is not None  # ticks are logged only where clocks are
+        with self.lock:
+            clock.begin_replay(event_ns, readings)
+            try:
+                callback()
+            finally:
+                clock.end()
+            self.stats['ticks_replayed'] += 1
 
     # -- live messages ------------------------------------------------------------------------
 
@@ -743,33 +794,70 @@ class NodeRuntime:
         self._apply(inp, raw, info, ident, log=True)
 
     def _apply(
-        self, inp: _Input, raw: bytes, info: dict[str, Any], ident: MessageId, *, log: bool
+        self, inp: _Input, raw: bytes, info: dict[str, Any], ident: MessageId, readings:
+        Iterable[Reading] = (), *, log: bool
     ) -> None:
+        """Run the user's callback on one message under the lock; ``log``: a live message,
+        written to the log first; else a replayed one, whose clock ``readings`` it gets."""
         msg = raw if inp.user_raw else deserialize_message(raw, inp.msg_type)
+        received_ns = int(info['received_timestamp'])
+        clock = self.clock
         with self.lock:
             if log and self.method.logs:
                 self._log(inp, raw, info, ident)
-            self.inflight.busy(inp.topic, ident, int(info['received_timestamp']))
-            if inp.with_info:
-                inp.callback(msg, info)
-            else:
-                inp.callback(msg)
+            self.inflight.busy(inp.topic, ident, received_ns)
+            if clock is not None:
+                if log:
+                    clock.begin_live()
+                else:
+                    clock.begin_replay(received_ns, readings)
+            try:
+                if inp.with_info:
+                    inp.callback(msg, info)
+                else:
+                    inp.callback(msg)
+            finally:
+                if clock is not None:
+                    clock.end()
             self.inflight.idle()
             self.windows[inp.topic].add(ident)
             self.stats['applied'] += 1
 
-    def _log(self, inp: _Input, raw: bytes, info: dict[str, Any], ident: MessageId) -> None:
+    def _segment(self) -> SegmentWriter:
+        """The segment being written, opened at the first record after a rotation."""
         if self.writer is None:
             self.writer = self.segments.open(self.next_segment)
             self.next_segment += 1
+        return self.writer
+
+    def _log(self, inp: _Input, raw: bytes, info: dict[str, Any], ident: MessageId) -> None:
+        writer = self._segment()
         node = self.node
         try:
-            self.writer.write(
+            writer.write(
                 inp.topic, inp.type_name, int(info['received_timestamp']), ident[0], ident[1], raw,
                 offered_qos=None if node is None else lambda: offered_qos(node, inp.topic),
             )
         except LogError as err:
             self._error(f'cannot log a message of {inp.topic}: {err}')
+
+    def _write_record(self, record: str, at_ns: int, value_ns: int, detail: int) -> None:
+        """Log a tick (``detail``: the timer's index) or a clock reading (its clock type)."""
+        writer = self._segment()
+        try:
+            writer.write(record, protocol.EVENT_RECORD_TYPE, at_ns, value_ns, detail,
+                              protocol.pack_time_record(value_ns))
+        except LogError as err:
+            self._error(f'cannot log {record}: {err}')
+
+    def _log_reading(self, reading: Reading) -> None:
+        self._write_record(protocol.CLOCK_RECORD, reading.at_ns, reading.value_ns,
+                           reading.clock_type)
+
+    def _readings_unrecorded(self) -> None:
+        self._error(f'a callback read its clocks more than {event_clock.MAX_READINGS_PER_EVENT} '
+                    'times in one event: the rest are not logged, and a replay of that event '
+                    'reads them from the event\'s time')
 
     # -- release and handover (S4) --------------------------------------------------------------
 
@@ -788,6 +876,8 @@ class NodeRuntime:
                 Node.create_timer(self.node, self.interval, tick, callback_group=self._group)
         if self.method.checkpoints:
             self._io.submit(self._prime_array_pool)
+        if self.clock is not None:
+            self.stats['clock_fallbacks'] = self.clock.fallbacks
         self._status(StatusKind.RELEASED, **self.stats)
 
     def _prime_array_pool(self) -> None:

@@ -126,6 +126,27 @@ class ReplayPace(enum.StrEnum):
     FAST = 'fast'  # as fast as the node takes them
 
 
+# Records in a node's log segments that are not messages: a tick of one of its timers, and a
+# clock reading taken inside one of its callbacks (docs/architecture.md, "Timers and the
+# clock"). No DDS topic has these names (':' is not allowed in a ROS name); they exist only
+# in segments and on the shadow topic.
+TIMER_RECORD: Final = '/rory:timer'
+CLOCK_RECORD: Final = '/rory:clock'
+EVENT_RECORD_TYPE: Final = 'builtin_interfaces/msg/Time'
+
+
+def pack_time_record(ns: int) -> bytes:
+    """The CDR bytes of an event record: the time it carries as a ``builtin_interfaces/Time``
+    (what a bag reader shows; RORY reads the record's timestamps)."""
+    sec, nanosec = divmod(max(ns, 0), 1_000_000_000)
+    return _CDR_LE + struct.pack('<iI', min(sec, 2**31 - 1), nanosec)
+
+
+def is_input_topic(topic: str) -> bool:
+    """Whether a logged record is a message of an input topic (not a tick or clock reading)."""
+    return topic not in (TIMER_RECORD, CLOCK_RECORD)
+
+
 def channel(namespace: str) -> str:
     """The channel of a supervisor whose node is in ``namespace`` (``/robot1/rory``)."""
     return f'{namespace.rstrip("/")}{DEFAULT_CHANNEL}'

@@ -29,12 +29,13 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from rosbags.interfaces import Qos
 
+from .. import protocol
 from ..errors import LogError
 from ..log import LogEntry, SegmentStore, SegmentWriter
 from ..protocol import (
@@ -70,7 +71,8 @@ def absorbed_identities(
         for topic, idents in ckpt.windows.items():
             known.setdefault(topic, set()).update((s, q) for s, q in idents)
     for topic, logged in segments.identities_after(cut).items():
-        known.setdefault(topic, set()).update(logged)
+        if protocol.is_input_topic(topic):  # ticks and clock readings are not messages
+            known.setdefault(topic, set()).update(logged)
     return known
 
 
@@ -223,6 +225,33 @@ class Timings:
         }
 
 
+def readings_first(entries: Iterable[LogEntry]) -> Iterator[LogEntry]:
+    """The log's records in order, except that an event's clock readings (logged while its
+    callback ran, so after it) come just before the event: the node then has them when it
+    replays the event (docs/architecture.md, "Timers and the clock")."""
+    event: LogEntry | None = None
+    readings: list[LogEntry] = []
+    try:
+        for entry in entries:
+            if entry.topic == protocol.CLOCK_RECORD and event is not None:
+                readings.append(entry)
+                continue
+            if event is not None:
+                yield from readings
+                yield event
+                readings.clear()
+            event = entry
+    except LogError:
+        # What was read before the failure is still sent.
+        if event is not None:
+            yield from readings
+            yield event
+        raise
+    if event is not None:
+        yield from readings
+        yield event
+
+
 class ReplayStreamer(threading.Thread):
     """Feeds the node's shadow topic: logged segments, then R; RELEASE; then the relay."""
 
@@ -293,7 +322,7 @@ class ReplayStreamer(threading.Thread):
             if delay > 0:
                 self._stopped.wait(delay)
 
-        for entry in self._backlog:
+        for entry in readings_first(self._backlog):
             if self._stopped.is_set():
                 return
             pace(entry)

@@ -149,3 +149,18 @@ def test_help(src: Path) -> None:
     done = run('--help', cwd=src.parent, module=True)
     assert done.returncode == 0
     assert '--vars' in done.stdout and '--check' in done.stdout
+
+
+def test_a_direct_clock_read_is_warned_on_stderr_and_the_tree_is_still_written(
+    src: Path,
+) -> None:
+    source = src / 'integrator.py'
+    source.write_text(INTEGRATOR_SOURCE.replace(
+        'import rclpy\n', 'import time\n\nimport rclpy\n'
+    ) + '        self.started = time.time()\n')
+    done = run('src', '--vars', 'keyvars.yaml', '-o', 'out', cwd=src.parent)
+    assert done.returncode == 0
+    assert done.stderr == (
+        'src/integrator.py:16:24: warning: time.time() is read directly; RORY cannot replay '
+        'it after a crash (in a callback, read self.get_clock().now())\n')
+    assert (src.parent / 'out' / 'integrator.py').exists()

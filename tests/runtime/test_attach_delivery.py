@@ -13,14 +13,18 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rclpy.clock import Clock, ROSClock
+from rclpy.clock_type import ClockType
 from rclpy.qos import QoSProfile
 from rclpy.serialization import serialize_message
+from rclpy.time import Time
 from std_msgs.msg import Int64
 
 from rory_runtime import attach, protocol
 from rory_runtime.attach import CheckpointSpec, NodeRuntime, RuntimeEnv
-from rory_runtime.log import read_segment
+from rory_runtime.log import LogEntry, read_segment
 from rory_runtime.protocol import FLAG_RELAY, Method, Mode
+from rory_runtime.supervisor.recovery import readings_first
 
 
 @dataclass
@@ -301,3 +305,128 @@ def test_the_shadow_subscription_is_retired_only_once_nothing_can_come_on_it(
         assert applied == [1, 2]
     finally:
         context.try_shutdown()
+
+
+# -- timers and the clock (docs/architecture.md, "Timers and the clock") ----------------------
+
+
+@dataclass
+class _Timer:
+    """What adopt_timer and a tick read from an rclpy Timer."""
+
+    callback: Callable[[], Any]
+    clock: Clock
+    canceled: bool = False
+
+    def is_canceled(self) -> bool:
+        return self.canceled
+
+    def cancel(self) -> None:
+        self.canceled = True
+
+    def reset(self) -> None:
+        self.canceled = False
+
+
+def _sim_clock(ns: int) -> ROSClock:
+    clock = ROSClock()
+    clock._set_ros_time_is_active(True)
+    _set_sim(clock, ns)
+    return clock
+
+
+def _set_sim(clock: ROSClock, ns: int) -> None:
+    clock.set_ros_time_override(Time(nanoseconds=ns, clock_type=ClockType.ROS_TIME))
+
+
+def _clocked_node(rt: NodeRuntime, clock: ROSClock, seen: list[tuple[str, int, int]]) -> tuple[
+        _Sub, _Timer]:
+    """A node whose subscription and timer both read the clock, twice per message."""
+
+    def on_number(msg: Int64) -> None:
+        seen.append(('msg', msg.data, clock.now().nanoseconds))
+        seen.append(('again', msg.data, clock.now().nanoseconds))
+
+    def on_tick() -> None:
+        seen.append(('tick', 0, clock.now().nanoseconds))
+
+    sub = _Sub('/numbers', on_number)
+    rt.adopt_subscription(sub)  # type: ignore[arg-type]
+    timer = _Timer(on_tick, clock)
+    rt.adopt_timer(timer)  # type: ignore[arg-type]
+    return sub, timer
+
+
+def _as_shadow(entry: LogEntry, incarnation: int) -> protocol.Msg:
+    return protocol.Msg(incarnation=incarnation, flags=0, recv_ns=entry.recv_ns,
+                        source_ns=entry.source_ns, seq=entry.seq, topic=entry.topic,
+                        data=entry.data)
+
+
+def test_ticks_and_clock_readings_are_logged_and_replay_in_order_with_the_recorded_times(
+    tmp_path: Path,
+) -> None:
+    live: list[tuple[str, int, int]] = []
+    clock = _sim_clock(10_000)
+    rt = _runtime(tmp_path, Mode.FRESH)
+    sub, timer = _clocked_node(rt, clock, live)
+    assert timer.canceled  # held until release
+    rt._open_gates(next_segment=1)
+    timer.reset()
+    for n in (1, 2, 3):
+        _set_sim(clock, n * 1_000_000)
+        _live(sub, n)
+        _set_sim(clock, n * 1_000_000 + 500_000)
+        timer.callback()
+    rt.close()
+    logged = list(read_segment(rt.segments.path(1)))
+    assert [e.topic for e in logged[:5]] == [
+        '/numbers', protocol.CLOCK_RECORD, protocol.CLOCK_RECORD, protocol.TIMER_RECORD,
+        protocol.CLOCK_RECORD]
+    assert logged[3].seq == 0  # the node's first timer
+    assert logged[3].source_ns == 1_500_000  # the tick's time on the timer's clock
+    assert rt.stats['ticks'] == 3
+
+    # The next process: sim time has moved on; the replay must not read it.
+    replayed: list[tuple[str, int, int]] = []
+    clock2 = _sim_clock(999_000_000_000)
+    rt2 = NodeRuntime(CheckpointSpec(('x',), 'sha256:0'), RuntimeEnv(
+        node_id='n', store=tmp_path, incarnation=3, method=Method.RORY, mode=Mode.RECOVER,
+        interval=2.0))
+    _clocked_node(rt2, clock2, replayed)
+    for entry in readings_first(logged):
+        rt2._from_shadow(_as_shadow(entry, 3))
+    assert replayed == live
+    assert rt2.stats['ticks_replayed'] == 3 and rt2.stats['replayed'] == 3
+    assert rt2.clock is not None and rt2.clock.fallbacks == 0
+    assert list(rt2.segments.path(n) for n in rt2.segments.numbers()) == [
+        rt.segments.path(1)]  # replay logs nothing again
+
+
+def test_a_skipped_replayed_message_drops_its_readings_with_it(tmp_path: Path) -> None:
+    seen: list[tuple[str, int, int]] = []
+    clock = _sim_clock(5)
+    rt = _runtime(tmp_path, Mode.RECOVER)
+    _clocked_node(rt, clock, seen)
+    rt.windows['/numbers'].add((1, 1))  # message 1 is in the checkpoint already
+    reading = protocol.Msg(incarnation=2, flags=0, recv_ns=1_001, source_ns=77,
+                           seq=int(ClockType.ROS_TIME), topic=protocol.CLOCK_RECORD, data=b'')
+    rt._from_shadow(reading)
+    rt._from_shadow(_shadow(1))
+    rt._from_shadow(_shadow(2))  # unrecorded: it came from R
+    assert [s[:2] for s in seen] == [('msg', 2), ('again', 2)]
+    assert 77 not in [s[2] for s in seen]
+    assert rt.clock is not None and rt.clock.fallbacks == 2
+
+
+def test_without_logging_methods_clocks_and_ticks_are_left_alone(tmp_path: Path) -> None:
+    seen: list[tuple[str, int, int]] = []
+    clock = _sim_clock(42)
+    rt = _runtime(tmp_path, Mode.FRESH, Method.CHECKPOINT)
+    sub, timer = _clocked_node(rt, clock, seen)
+    rt._open_gates(next_segment=1)
+    _live(sub, 1)
+    timer.callback()
+    assert rt.clock is None
+    assert [s[2] for s in seen] == [42, 42, 42]
+    assert rt.segments.numbers() == []

@@ -14,10 +14,11 @@ import pytest
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Int64
 
+from rory_runtime import protocol
 from rory_runtime.errors import LogError
 from rory_runtime.log import LogEntry, SegmentStore, read_segment
 from rory_runtime.protocol import FLAG_RELAY, Msg, Release, ReplayPace, unpack
-from rory_runtime.supervisor.recovery import RecoveryLog, ReplayStreamer
+from rory_runtime.supervisor.recovery import RecoveryLog, ReplayStreamer, readings_first
 
 NODE = 'integrator'
 INT64 = 'std_msgs/msg/Int64'
@@ -369,3 +370,25 @@ def test_paced_r_entries_before_the_crash_are_paced_after_the_backlog(
     streamer.start()
     assert released.event.wait(WAIT)
     assert pub.times[1] - pub.times[0] >= 0.18
+
+
+def test_an_events_clock_readings_are_sent_just_before_it() -> None:
+    def record(topic: str, n: int) -> LogEntry:
+        return LogEntry(topic, 'builtin_interfaces/msg/Time', n, n, n, b'')
+
+    log = [entry('/a', 1), record(protocol.CLOCK_RECORD, 2), record(protocol.CLOCK_RECORD, 3),
+           record(protocol.TIMER_RECORD, 4), record(protocol.CLOCK_RECORD, 5), entry('/a', 6),
+           entry('/a', 7), record(protocol.CLOCK_RECORD, 8)]
+    assert [e.seq for e in readings_first(log)] == [2, 3, 1, 5, 4, 6, 8, 7]
+    assert list(readings_first([])) == []
+
+
+def test_a_failure_reading_the_log_still_sends_the_event_read_before_it() -> None:
+    def log() -> Iterator[LogEntry]:
+        yield entry('/a', 1)
+        raise LogError(Path('/x/0000000001'), 'torn')
+
+    sent: list[LogEntry] = []
+    with pytest.raises(LogError):
+        sent.extend(readings_first(log()))
+    assert [e.topic for e in sent] == ['/a']

@@ -355,8 +355,13 @@ def run(
     timeout: float = 90.0,
     program: Program = INTEGRATOR,
     warm_standby: bool | None = None,
+    other_readers: int = 0,
 ) -> ScenarioResult:
-    """Run the scenario once; always reaps every process it started."""
+    """Run the scenario once; always reaps every process it started.
+
+    ``other_readers``: readers of the numbers besides the node and RORY's ring (a helper the
+    caller started) that the publisher waits for before its first number.
+    """
     workdir = workdir.resolve()
     config = prepare(workdir, method, interval=interval, pace=pace, program=program,
                      warm_standby=warm_standby)
@@ -384,7 +389,7 @@ def run(
                     raise RuntimeError(f'node did not start:\n{sup_log.read_text()}')
                 time.sleep(0.01)
             # The node, plus RORY's own reader for the methods that record.
-            min_subs = '2' if method in ('rory', 'replay') else '1'
+            min_subs = str((2 if method in ('rory', 'replay') else 1) + other_readers)
             publisher = [sys.executable, str(EXAMPLE / 'count_publisher.py'), str(count), str(rate)]
             with child_process(
                 [*publisher, min_subs], env, workdir, workdir / f'publisher-{method}.log'

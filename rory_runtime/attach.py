@@ -49,18 +49,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar, cast
 
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from rclpy.serialization import deserialize_message
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from std_msgs.msg import String, UInt8MultiArray
 
-from . import codec, event_clock, protocol
+from . import codec, event_clock, node_parameters, protocol
 from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
 from .event_clock import EventClock, Reading
 from .inflight import InFlightSlot, slot_path
@@ -464,10 +467,15 @@ class NodeRuntime:
         # The readings the next replayed event took when it ran live (the streamer sends an
         # event's clock records just before the event).
         self._readings: list[Reading] = []
+        # The node's own set_parameters_atomically, behind the wrapper that logs changes
+        # from outside (set in on_constructed).
+        self._set_parameters_atomically: Callable[[list[Parameter]], SetParametersResult] | None
+        self._set_parameters_atomically = None
         self.publishers: list[Publisher] = []
         self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0, 'quarantined': 0,
                       'passed_by_relay': 0, 'ticks': 0, 'ticks_replayed': 0,
-                      'clock_fallbacks': 0}
+                      'clock_fallbacks': 0, 'parameter_changes': 0,
+                      'parameter_changes_replayed': 0}
         # What the node is applying right now, readable after a crash (poison detection).
         self.inflight = InFlightSlot(slot_path(env.store, env.node_id), env.incarnation)
         self.checkpoints = CheckpointStore(env.store, env.node_id)
@@ -584,6 +592,7 @@ class NodeRuntime:
             return
         self._started = True
         self.node = node
+        self._watch_parameters(node)
         self._group = MutuallyExclusiveCallbackGroup()
         self._status_pub = Node.create_publisher(
             node, String, protocol.status_topic(self.env.node_id, self.env.channel),
@@ -606,6 +615,62 @@ class NodeRuntime:
         self._startup_timer = Node.create_timer(
             node, 0.0, self._startup, callback_group=self._group
         )
+
+    def _watch_parameters(self, node: Node) -> None:
+        """Route parameter changes from outside through :meth:`_parameters_from_outside`.
+
+        rclpy's parameter services call ``set_parameters_atomically`` on the node; an instance
+        attribute of that name is what they find.
+        """
+        original = node.set_parameters_atomically
+        self._set_parameters_atomically = original
+
+        def set_parameters_atomically(parameter_list: list[Parameter]) -> SetParametersResult:
+            return self._parameters_from_outside(original, parameter_list)
+
+        node.set_parameters_atomically = set_parameters_atomically  # type: ignore[method-assign]
+
+    def _parameters_from_outside(
+        self, original: Callable[[list[Parameter]], SetParametersResult],
+        parameter_list: list[Parameter],
+    ) -> SetParametersResult:
+        """A parameter change: an input when it comes from outside an event."""
+        if event_clock.in_event():
+            return original(parameter_list)  # a callback's own change: replayed with it
+        if not self.released:
+            return SetParametersResult(
+                successful=False, reason='[rory] the node is recovering (or not yet released); '
+                'set it again once it is back')
+        with self.lock:
+            clock = self.clock
+            if clock is None:
+                return original(parameter_list)
+            data = node_parameters.pack(parameter_list)
+            self._write_record(protocol.PARAMETERS_RECORD, time.time_ns(), 0, 0, data,
+                               node_parameters.RECORD_TYPE)
+            self.stats['parameter_changes'] += 1
+            clock.begin_live()
+            try:
+                return original(parameter_list)
+            finally:
+                clock.end()
+
+    def _replay_parameters(self, data: bytes, event_ns: int, readings: list[Reading]) -> None:
+        """A logged parameter change, applied again with the node's parameter callbacks."""
+        original, clock = self._set_parameters_atomically, self.clock
+        assert original is not None and clock is not None
+        with self.lock:
+            clock.begin_replay(event_ns, readings)
+            try:
+                result = original(node_parameters.unpack(data))
+            except (ParameterException, ValueError) as err:
+                self._error(f'a logged parameter change failed again in replay: {err}')
+                return
+            finally:
+                clock.end()
+            self.stats['parameter_changes_replayed'] += 1
+        if not result.successful:
+            self._error(f'a logged parameter change was refused in replay: {result.reason}')
 
     def _startup(self) -> None:
         assert self.node is not None
@@ -672,6 +737,9 @@ class NodeRuntime:
                 return None
             try:
                 with self.lock:
+                    # Parameters first: their callbacks may set attributes; the key variables
+                    # then get the values they had when the checkpoint was taken.
+                    restored_parameters = self._restore_parameters(ckpt.parameters)
                     write_state(self.spec, self.node, codec.decode_vars(ckpt.vars_blob))
             except CodecError as err:
                 # Checksum was fine but the payload is not ours: set it aside, try the older one.
@@ -683,7 +751,21 @@ class NodeRuntime:
                     size = protocol.window_size(inp.spec) if inp else len(idents) + 64
                     self.windows[topic] = _Window(size, ((s, q) for s, q in idents))
                 self.previous_cut = ckpt.cut
-            return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns}
+            return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns,
+                    'parameters': restored_parameters}
+
+    def _restore_parameters(self, data: bytes) -> list[str]:
+        """Set the checkpoint's parameter values that differ from this process's."""
+        if not data or self.node is None:
+            return []
+        try:
+            restored, refused = node_parameters.restore(self.node, data)
+        except ValueError as err:  # a damaged checkpoint
+            self._error(f'checkpoint parameters unreadable, none restored: {err}')
+            return []
+        for line in refused:
+            self._error(line)
+        return restored
 
     # -- the shadow topic ---------------------------------------------------------------------
 
@@ -721,6 +803,9 @@ class NodeRuntime:
         readings, self._readings = self._readings, []
         if msg.topic == protocol.TIMER_RECORD:
             self._replay_tick(msg.seq, msg.recv_ns, readings)
+            return
+        if msg.topic == protocol.PARAMETERS_RECORD:
+            self._replay_parameters(msg.data, msg.recv_ns, readings)
             return
         inp = self.inputs.get(msg.topic)
         if inp is None:
@@ -841,12 +926,15 @@ class NodeRuntime:
         except LogError as err:
             self._error(f'cannot log a message of {inp.topic}: {err}')
 
-    def _write_record(self, record: str, at_ns: int, value_ns: int, detail: int) -> None:
-        """Log a tick (``detail``: the timer's index) or a clock reading (its clock type)."""
+    def _write_record(self, record: str, at_ns: int, value_ns: int, detail: int,
+                      data: bytes | None = None,
+                      record_type: str = protocol.EVENT_RECORD_TYPE) -> None:
+        """Log a tick (``detail``: the timer's index), a clock reading (its clock type) or a
+        parameter change (``data``)."""
         writer = self._segment()
         try:
-            writer.write(record, protocol.EVENT_RECORD_TYPE, at_ns, value_ns, detail,
-                              protocol.pack_time_record(value_ns))
+            writer.write(record, record_type, at_ns, value_ns, detail,
+                         protocol.pack_time_record(value_ns) if data is None else data)
         except LogError as err:
             self._error(f'cannot log {record}: {err}')
 
@@ -1031,6 +1119,7 @@ class NodeRuntime:
                 return
             cut, writer = self._rotate_segment() if self.method.logs else (None, None)
             windows = {topic: w.snapshot() for topic, w in self.windows.items()}
+            parameters = node_parameters.snapshot(self.node)
             prune_through, self.previous_cut = self.previous_cut, cut
             seq, self._next_seq = self._next_seq, self._next_seq + 1
         stall_ms = (time.perf_counter() - began) * 1000.0
@@ -1056,6 +1145,7 @@ class NodeRuntime:
                 cut=cut,
                 windows=windows,
                 vars_blob=blob,
+                parameters=parameters,
             )
             try:
                 self.checkpoints.write(ckpt)

@@ -71,9 +71,10 @@ def install() -> None:
         _installed = True
 
 
-def active() -> EventClock | None:
-    """The event whose clock readings are taken over right now, if any."""
-    return _active
+def in_event() -> bool:
+    """Whether this thread is running an event of the node (a callback RORY applies)."""
+    event = _active
+    return event is not None and event.thread == threading.get_ident()
 
 
 def _live_offset(clock: Clock, clock_type: int) -> int:

@@ -126,13 +126,16 @@ class ReplayPace(enum.StrEnum):
     FAST = 'fast'  # as fast as the node takes them
 
 
-# Records in a node's log segments that are not messages: a tick of one of its timers, and a
-# clock reading taken inside one of its callbacks (docs/architecture.md, "Timers and the
-# clock"). No DDS topic has these names (':' is not allowed in a ROS name); they exist only
-# in segments and on the shadow topic.
+# Records in a node's log segments that are not messages: a tick of one of its timers, a
+# clock reading taken inside one of its callbacks, a parameter change (docs/architecture.md,
+# "Timers and the clock"). No DDS topic has these names (':' is not allowed in a ROS name);
+# they exist only in segments and on the shadow topic.
 TIMER_RECORD: Final = '/rory:timer'
 CLOCK_RECORD: Final = '/rory:clock'
 EVENT_RECORD_TYPE: Final = 'builtin_interfaces/msg/Time'
+# A change of the node's parameters from outside, as a serialized
+# rcl_interfaces/msg/ParameterEvent (docs/architecture.md, "Parameters").
+PARAMETERS_RECORD: Final = '/rory:parameters'
 
 
 def pack_time_record(ns: int) -> bytes:
@@ -144,7 +147,7 @@ def pack_time_record(ns: int) -> bytes:
 
 def is_input_topic(topic: str) -> bool:
     """Whether a logged record is a message of an input topic (not a tick or clock reading)."""
-    return topic not in (TIMER_RECORD, CLOCK_RECORD)
+    return topic not in (TIMER_RECORD, CLOCK_RECORD, PARAMETERS_RECORD)
 
 
 def channel(namespace: str) -> str:

@@ -8,7 +8,8 @@ File format, all integers little endian::
     0       8     magic b'RORYCKPT'
     8       2     u16 format version (1)
     10      4     u32 header length H
-    14      H     header: msgpack map of every Checkpoint field except vars_blob, plus
+    14      H     header: msgpack map of every Checkpoint field except vars_blob (and
+                  parameters when empty), plus
                   'vars_len' (the length of vars_blob)
     14+H    V     vars_blob, opaque here (codec.encode_vars output)
     14+H+V  32    SHA-256 over all bytes before it
@@ -67,6 +68,8 @@ class Checkpoint:
         windows: Per topic, identities ``(source_ts, seq)`` of recently absorbed messages,
             oldest first.
         vars_blob: ``codec.encode_vars`` output, opaque here.
+        parameters: The node's parameters, a serialized ``rcl_interfaces/msg/ParameterEvent``
+            (``parameters.py`` in the runtime); empty in checkpoints from before they were kept.
 
     """
 
@@ -79,6 +82,7 @@ class Checkpoint:
     cut: int | None
     windows: dict[str, list[tuple[int, int]]]
     vars_blob: bytes
+    parameters: bytes = b''
 
 
 class CheckpointStore:
@@ -303,6 +307,8 @@ def serialize(ckpt: Checkpoint, path: Path | str = '<memory>') -> bytes:
         'windows': {topic: [list(ident) for ident in ids] for topic, ids in ckpt.windows.items()},
         'vars_len': len(ckpt.vars_blob),
     }
+    if ckpt.parameters:
+        header['parameters'] = ckpt.parameters
     packed: bytes = msgpack.packb(header, use_bin_type=True)
     body = b''.join((_PREFIX.pack(MAGIC, FORMAT_VERSION, len(packed)), packed, ckpt.vars_blob))
     return body + hashlib.sha256(body).digest()
@@ -354,7 +360,7 @@ def _unpack_header(raw: bytes, path: Path | str) -> dict[str, object]:
             raw=False,
             use_list=True,
             strict_map_key=True,
-            max_bin_len=0,
+            max_bin_len=len(raw),  # the parameters; bounded by the header itself
             max_ext_len=0,
             ext_hook=_refuse_ext,
         )
@@ -387,6 +393,7 @@ def _checkpoint_from_header(
         cut=cut,
         windows=_field_windows(header, path),
         vars_blob=vars_blob,
+        parameters=_field_bytes(header, 'parameters', path),
     )
 
 
@@ -404,6 +411,13 @@ def _field_str(header: dict[str, object], name: str, path: Path | str) -> str:
     value = header.get(name, _MISSING)
     if type(value) is not str:
         raise _bad_field(path, repr(name), 'a str', value)
+    return value
+
+
+def _field_bytes(header: dict[str, object], name: str, path: Path | str) -> bytes:
+    value = header.get(name, b'')
+    if type(value) is not bytes:
+        raise _bad_field(path, repr(name), 'bytes', value)
     return value
 
 

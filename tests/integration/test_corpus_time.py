@@ -1,21 +1,23 @@
-"""Nodes that compute with their clock or work in timers, SIGKILLed mid-interval.
+"""Nodes that compute with their clock, work in timers or are tuned by parameters at run
+time, SIGKILLed mid-interval.
 
-Their clock readings and timer ticks are inputs (docs/architecture.md, "Timers and the
-clock"): logged while live, replayed with the recorded times. Two runs of such a node never
-read the same times, so each crashed run is checked against itself: every message applied
-once and in order, the state equal to what its own clock readings imply, and no reading or
-tick taken from the replay's time instead of the recorded one (which shows as a lag or a gap
-of the time since the checkpoint, here about 1.8 s).
+Their clock readings, timer ticks and parameter changes are inputs (docs/architecture.md,
+"Timers and the clock", "Parameters"): logged while live, replayed as recorded. Two runs of
+such a node never read the same times, so each crashed run is checked against itself: every
+message applied once and in order, the state equal to what its own readings imply, and no
+reading or tick taken from the replay's time instead of the recorded one (which shows as a lag
+or a gap of the time since the checkpoint, here about 1.8 s).
 """
 
 from __future__ import annotations
 
 import itertools
+import sys
 from pathlib import Path
 
 import pytest
 
-from rory_eval.scenario import Kill, Program, ScenarioResult, run
+from rory_eval.scenario import Kill, Program, ScenarioResult, child_process, run, scenario_env
 
 pytestmark = pytest.mark.ros
 
@@ -29,10 +31,11 @@ KILL_AFTER = 2.8
 MAX_LAG_NS = 900_000_000
 
 
-def _crashed(file: str, name: str, tmp_path: Path, domain: int) -> ScenarioResult:
+def _crashed(file: str, name: str, tmp_path: Path, domain: int,
+             other_readers: int = 0) -> ScenarioResult:
     program = Program(CORPUS, CORPUS / 'keyvars.yaml', file, '/state', name)
     result = run('rory', (Kill(after=KILL_AFTER),), tmp_path, domain_id=domain, count=COUNT,
-                 interval=None, pace=None, program=program)
+                 interval=None, pace=None, program=program, other_readers=other_readers)
     assert len(result.recoveries) == 1
     assert result.recoveries[0]['replay'] == 'fast'
     assert result.recoveries[0]['replayed'] > 0
@@ -74,3 +77,28 @@ def test_a_node_working_in_a_timer_recovers_every_tick(
     assert min(gaps) > 0
     assert max(gaps) < MAX_LAG_NS, max(gaps)
     assert result.recoveries[0]['ticks_replayed'] > 0
+
+
+def test_a_node_tuned_at_run_time_keeps_its_parameters_through_a_crash(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    # The operator sets the gain to 2 before the node's second checkpoint (about number 50)
+    # and to 3 after it (number 100), before the kill (about number 140): the first comes
+    # back from the checkpoint, the second from the log.
+    operator = [sys.executable, str(CORPUS / 'tune_gain.py'), '20=2.0', '100=3.0']
+    with child_process(operator, scenario_env(ros_domain), tmp_path, tmp_path / 'tune.log'):
+        result = _crashed('gain_controller.py', 'gain_controller', tmp_path, ros_domain,
+                          other_readers=1)
+    state = result.state
+    assert isinstance(state, dict)
+    assert state['count'] == COUNT
+    assert [gain for gain, _ in state['gains']] == [1.0, 2.0, 3.0], state['gains']
+    total, n = 0.0, 0
+    for gain, how_many in state['gains']:
+        for _ in range(how_many):
+            n += 1
+            total += gain * n
+    assert state['total'] == total
+    hello = [e for e in result.events if e['kind'] == 'hello']
+    assert hello[-1]['restored']['parameters'] == ['gain']
+    assert result.recoveries[0]['parameter_changes_replayed'] == 1

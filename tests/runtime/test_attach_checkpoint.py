@@ -11,6 +11,8 @@ import threading
 from pathlib import Path
 
 import numpy as np
+from rcl_interfaces.msg import ListParametersResult
+from rclpy.parameter import Parameter
 
 from rory_runtime import codec
 from rory_runtime.attach import CheckpointSpec, NodeRuntime, RuntimeEnv
@@ -18,7 +20,8 @@ from rory_runtime.protocol import Method, Mode
 
 
 class _Node:
-    """Key variables (a grid large enough to be pooled, a counter) and rclpy's logger."""
+    """Key variables (a grid large enough to be pooled, a counter), rclpy's logger and no
+    parameters."""
 
     def __init__(self) -> None:
         self.grid = np.zeros((256, 256), dtype=np.float32)  # 256 kB
@@ -26,6 +29,12 @@ class _Node:
 
     def get_logger(self) -> logging.Logger:
         return logging.getLogger('test-node')
+
+    def list_parameters(self, _prefixes: list[str], _depth: int) -> ListParametersResult:
+        return ListParametersResult()
+
+    def get_parameters(self, _names: list[str]) -> list[Parameter]:
+        return []
 
 
 def _wait_for_io(rt: NodeRuntime) -> None:

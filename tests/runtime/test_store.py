@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import signal
@@ -91,6 +92,15 @@ def test_roundtrip(store: CheckpointStore) -> None:
     assert loaded.windows['/a'] == [(100, 1), (200, 2)]
     assert isinstance(loaded.windows['/a'][0], tuple)
     assert decode_vars(loaded.vars_blob) == {'total': 1.5, 'history': [(1, 2)]}
+
+
+def test_roundtrip_with_parameters_and_without(store: CheckpointStore) -> None:
+    with_parameters = dataclasses.replace(make_ckpt(1), parameters=b'\x00\x01cdr')
+    assert store.load(store.write(with_parameters)).parameters == b'\x00\x01cdr'
+    # A checkpoint from before parameters were kept has none: restored as empty.
+    path = store.dir / '0000000002.ckpt'
+    path.write_bytes(frame(header_of(make_ckpt(2)), make_ckpt(2).vars_blob))
+    assert store.load(path).parameters == b''
 
 
 def test_roundtrip_without_log(store: CheckpointStore) -> None:
@@ -366,7 +376,8 @@ GOOD = header_of(make_ckpt(1, vars_blob=b''))
         (msgpack.packb(GOOD)[:-1], 'malformed header'),  # header cut short
         (b'\xc1', 'malformed header'),
         (msgpack.packb({**GOOD, 'x': msgpack.ExtType(1, b'')}), 'malformed header'),
-        (msgpack.packb({**GOOD, 'x': b'bin'}, use_bin_type=True), 'malformed header'),
+        ({**GOOD, 'parameters': 'text'}, "field 'parameters' should be bytes"),
+        ({**GOOD, 'parameters': [b'x']}, "field 'parameters' should be bytes"),
     ],
 )
 def test_malformed_header(

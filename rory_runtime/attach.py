@@ -59,11 +59,12 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from rclpy.serialization import deserialize_message
+from rclpy.service import Service
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from std_msgs.msg import String, UInt8MultiArray
 
-from . import codec, event_clock, node_parameters, protocol
+from . import codec, event_clock, node_parameters, node_services, protocol
 from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
 from .event_clock import EventClock, Reading
 from .inflight import InFlightSlot, slot_path
@@ -278,6 +279,7 @@ def _factories() -> tuple[tuple[str, Callable[[NodeRuntime, Any], None]], ...]:
         ('create_subscription', NodeRuntime.adopt_subscription),
         ('create_publisher', NodeRuntime.adopt_publisher),
         ('create_timer', NodeRuntime.adopt_timer),
+        ('create_service', NodeRuntime.adopt_service),
     )
 
 
@@ -459,6 +461,8 @@ class NodeRuntime:
         self.held_timers: list[Timer] = []
         # The user's timer callbacks by creation order: a logged tick names its timer by index.
         self.timer_callbacks: list[Callable[[], Any]] = []
+        # The user's services by creation order: a logged request names its service by index.
+        self.services: list[tuple[Service, Callable[[Any, Any], Any]]] = []
         # Clock readings inside events, recorded and replayed (only when messages are logged).
         self.clock: EventClock | None = None
         if self.method.logs:
@@ -475,7 +479,7 @@ class NodeRuntime:
         self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0, 'quarantined': 0,
                       'passed_by_relay': 0, 'ticks': 0, 'ticks_replayed': 0,
                       'clock_fallbacks': 0, 'parameter_changes': 0,
-                      'parameter_changes_replayed': 0}
+                      'parameter_changes_replayed': 0, 'requests': 0, 'requests_replayed': 0}
         # What the node is applying right now, readable after a crash (poison detection).
         self.inflight = InFlightSlot(slot_path(env.store, env.node_id), env.incarnation)
         self.checkpoints = CheckpointStore(env.store, env.node_id)
@@ -584,6 +588,35 @@ class NodeRuntime:
             self.held_timers.append(timer)
             timer.cancel()
 
+    def adopt_service(self, srv: Service) -> None:
+        """Hold a user service until release; log each request before its handler runs."""
+        if any(srv is known for known, _ in self.services):
+            return
+        callback = srv.callback
+        if inspect.iscoroutinefunction(callback):
+            raise RoryError(f'async service callbacks are not supported yet ({srv.srv_name})')
+        index = len(self.services)
+        self.services.append((srv, callback))
+        srv.callback_group = node_services.HeldUntilRelease(srv.callback_group,
+                                                            lambda: self.released)
+
+        def logged_request(request: Any, response: Any) -> Any:
+            with self.lock:
+                clock = self.clock
+                if clock is None:
+                    return callback(request, response)
+                self._write_record(protocol.REQUEST_RECORD, time.time_ns(), 0, index,
+                                   node_services.pack_request(request),
+                                   node_services.RECORD_TYPE)
+                self.stats['requests'] += 1
+                clock.begin_live()
+                try:
+                    return callback(request, response)
+                finally:
+                    clock.end()
+
+        srv.callback = logged_request
+
     # -- start-up -------------------------------------------------------------------------------
 
     def on_constructed(self, node: Node) -> None:
@@ -654,6 +687,31 @@ class NodeRuntime:
                 return original(parameter_list)
             finally:
                 clock.end()
+
+    def _replay_request(self, index: int, data: bytes, event_ns: int,
+                        readings: list[Reading]) -> None:
+        """A logged request to the user's service number ``index``, handled again; the response
+        goes nowhere."""
+        if index >= len(self.services):
+            self._error(f'the log has a request to service {index}, but the node made '
+                        f'{len(self.services)} service(s): request skipped')
+            return
+        srv, callback = self.services[index]
+        srv_type: Any = srv.srv_type  # rclpy's annotation lacks Request and Response
+        try:
+            request = node_services.unpack_request(data, srv_type.Request)
+        except ValueError as err:
+            self._error(f'a logged request to {srv.srv_name} is unreadable: {err}')
+            return
+        clock = self.clock
+        assert clock is not None  # requests are logged only where clocks are
+        with self.lock:
+            clock.begin_replay(event_ns, readings)
+            try:
+                callback(request, srv_type.Response())
+            finally:
+                clock.end()
+            self.stats['requests_replayed'] += 1
 
     def _replay_parameters(self, data: bytes, event_ns: int, readings: list[Reading]) -> None:
         """A logged parameter change, applied again with the node's parameter callbacks."""
@@ -806,6 +864,9 @@ class NodeRuntime:
             return
         if msg.topic == protocol.PARAMETERS_RECORD:
             self._replay_parameters(msg.data, msg.recv_ns, readings)
+            return
+        if msg.topic == protocol.REQUEST_RECORD:
+            self._replay_request(msg.seq, msg.data, msg.recv_ns, readings)
             return
         inp = self.inputs.get(msg.topic)
         if inp is None:

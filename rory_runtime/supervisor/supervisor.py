@@ -553,7 +553,8 @@ class ManagedNode:
         self.running_since = time.monotonic()
         stats = {k: status.get(k) for k in ('applied', 'replayed', 'duplicates', 'muted',
                                              'ticks_replayed', 'clock_fallbacks',
-                                             'parameter_changes_replayed')}
+                                             'parameter_changes_replayed',
+                                             'requests_replayed')}
         rec = self.recovery
         if rec is not None and self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING):
             timing = rec.s4_release(stats)

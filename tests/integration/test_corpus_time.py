@@ -1,8 +1,9 @@
-"""Nodes that compute with their clock, work in timers or are tuned by parameters at run
-time, SIGKILLed mid-interval.
+"""Nodes that compute with their clock, work in timers, are tuned by parameters or commanded
+by a service at run time, SIGKILLed mid-interval.
 
-Their clock readings, timer ticks and parameter changes are inputs (docs/architecture.md,
-"Timers and the clock", "Parameters"): logged while live, replayed as recorded. Two runs of
+Their clock readings, timer ticks, parameter changes and service requests are inputs
+(docs/architecture.md, "Timers and the clock", "Parameters", "Services"): logged while live,
+replayed as recorded. Two runs of
 such a node never read the same times, so each crashed run is checked against itself: every
 message applied once and in order, the state equal to what its own readings imply, and no
 reading or tick taken from the replay's time instead of the recorded one (which shows as a lag
@@ -85,8 +86,8 @@ def test_a_node_tuned_at_run_time_keeps_its_parameters_through_a_crash(
     # The operator sets the gain to 2 before the node's second checkpoint (about number 50)
     # and to 3 after it (number 100), before the kill (about number 140): the first comes
     # back from the checkpoint, the second from the log.
-    operator = [sys.executable, str(CORPUS / 'tune_gain.py'), '20=2.0', '100=3.0']
-    with child_process(operator, scenario_env(ros_domain), tmp_path, tmp_path / 'tune.log'):
+    operator = [sys.executable, str(CORPUS / 'operator.py'), 'gain', '20=2.0', '100=3.0']
+    with child_process(operator, scenario_env(ros_domain), tmp_path, tmp_path / 'operator.log'):
         result = _crashed('gain_controller.py', 'gain_controller', tmp_path, ros_domain,
                           other_readers=1)
     state = result.state
@@ -102,3 +103,25 @@ def test_a_node_tuned_at_run_time_keeps_its_parameters_through_a_crash(
     hello = [e for e in result.events if e['kind'] == 'hello']
     assert hello[-1]['restored']['parameters'] == ['gain']
     assert result.recoveries[0]['parameter_changes_replayed'] == 1
+
+
+def test_a_node_commanded_by_a_service_keeps_its_commands_through_a_crash(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    # Fast mode on before the node's second checkpoint, off after it and before the kill.
+    operator = [sys.executable, str(CORPUS / 'operator.py'), 'fast', '20=1', '100=0']
+    with child_process(operator, scenario_env(ros_domain), tmp_path, tmp_path / 'operator.log'):
+        result = _crashed('mode_switch.py', 'mode_switch', tmp_path, ros_domain,
+                          other_readers=1)
+    state = result.state
+    assert isinstance(state, dict)
+    assert state['count'] == COUNT
+    assert [factor for factor, _ in state['runs']] == [1, 2, 1], state['runs']
+    assert state['requests'] == 2
+    total, n = 0, 0
+    for factor, how_many in state['runs']:
+        for _ in range(how_many):
+            n += 1
+            total += factor * n
+    assert state['total'] == total
+    assert result.recoveries[0]['requests_replayed'] == 1

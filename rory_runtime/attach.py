@@ -64,7 +64,7 @@ from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from std_msgs.msg import String, UInt8MultiArray
 
-from . import codec, event_clock, node_parameters, node_services, protocol
+from . import codec, event_clock, node_lifecycle, node_parameters, node_services, protocol
 from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
 from .event_clock import EventClock, Reading
 from .inflight import InFlightSlot, slot_path
@@ -492,6 +492,7 @@ class NodeRuntime:
         self._group: MutuallyExclusiveCallbackGroup | None = None
         self._status_pub: Publisher | None = None
         self._startup_timer: Timer | None = None
+        self._hello_sent = False
         self._started = False
         self._io = _IoWorker()
         # The buffers of the last packed checkpoint's large arrays, for the next snapshot.
@@ -538,6 +539,10 @@ class NodeRuntime:
         sub.callback = functools.partial(self._on_live, inp)
         for msg in self.orphans.pop(topic, []):
             self._from_shadow(msg)
+        if self._hello_sent:
+            # Made after start-up (a lifecycle node's on_configure): the ring must read it too.
+            self._status(StatusKind.INPUTS,
+                         inputs=[i.spec.to_json() for i in self.inputs.values()])
 
     def adopt_publisher(self, pub: Publisher) -> None:
         """Mute a user publisher while the node is isolated."""
@@ -626,6 +631,10 @@ class NodeRuntime:
         self._started = True
         self.node = node
         self._watch_parameters(node)
+        change_state = node_lifecycle.change_state_service(node)
+        if change_state is not None:
+            # Transitions from outside are requests like any service's: held, logged, replayed.
+            self.adopt_service(change_state)
         self._group = MutuallyExclusiveCallbackGroup()
         self._status_pub = Node.create_publisher(
             node, String, protocol.status_topic(self.env.node_id, self.env.channel),
@@ -774,6 +783,7 @@ class NodeRuntime:
                          or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')),
             dds_transports=os.environ.get('FASTDDS_BUILTIN_TRANSPORTS'),
         )
+        self._hello_sent = True
         if not self.method.logs:
             # restart and checkpoint have nothing to replay: release right away.
             self._release(self.segments.next_number())
@@ -798,6 +808,11 @@ class NodeRuntime:
                     # Parameters first: their callbacks may set attributes; the key variables
                     # then get the values they had when the checkpoint was taken.
                     restored_parameters = self._restore_parameters(ckpt.parameters)
+                    # Then the lifecycle state, through the node's transition callbacks: what
+                    # they make exists again before the key variables are written.
+                    lifecycle_error = node_lifecycle.restore(self.node, ckpt.lifecycle)
+                    if lifecycle_error is not None:
+                        self._error(lifecycle_error)
                     write_state(self.spec, self.node, codec.decode_vars(ckpt.vars_blob))
             except CodecError as err:
                 # Checksum was fine but the payload is not ours: set it aside, try the older one.
@@ -810,7 +825,8 @@ class NodeRuntime:
                     self.windows[topic] = _Window(size, ((s, q) for s, q in idents))
                 self.previous_cut = ckpt.cut
             return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns,
-                    'parameters': restored_parameters}
+                    'parameters': restored_parameters,
+                    'lifecycle': node_lifecycle.state_of(self.node) or None}
 
     def _restore_parameters(self, data: bytes) -> list[str]:
         """Set the checkpoint's parameter values that differ from this process's."""
@@ -1181,6 +1197,7 @@ class NodeRuntime:
             cut, writer = self._rotate_segment() if self.method.logs else (None, None)
             windows = {topic: w.snapshot() for topic, w in self.windows.items()}
             parameters = node_parameters.snapshot(self.node)
+            lifecycle = node_lifecycle.state_of(self.node)
             prune_through, self.previous_cut = self.previous_cut, cut
             seq, self._next_seq = self._next_seq, self._next_seq + 1
         stall_ms = (time.perf_counter() - began) * 1000.0
@@ -1207,6 +1224,7 @@ class NodeRuntime:
                 windows=windows,
                 vars_blob=blob,
                 parameters=parameters,
+                lifecycle=lifecycle,
             )
             try:
                 self.checkpoints.write(ckpt)

@@ -202,6 +202,7 @@ class StatusKind(enum.StrEnum):
     RELEASED = 'released'  # outputs unmuted, timers running
     CHECKPOINT = 'checkpoint'  # a checkpoint was written
     SWITCHED = 'switched'  # a topic is now taken from the live subscription
+    INPUTS = 'inputs'  # a subscription made after HELLO (e.g. in on_configure): every input
     ERROR = 'error'  # something the operator must know (e.g. a variable that cannot be saved)
 
 

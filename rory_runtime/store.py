@@ -9,7 +9,7 @@ File format, all integers little endian::
     8       2     u16 format version (1)
     10      4     u32 header length H
     14      H     header: msgpack map of every Checkpoint field except vars_blob (and
-                  parameters when empty), plus
+                  parameters and lifecycle when empty), plus
                   'vars_len' (the length of vars_blob)
     14+H    V     vars_blob, opaque here (codec.encode_vars output)
     14+H+V  32    SHA-256 over all bytes before it
@@ -69,7 +69,8 @@ class Checkpoint:
             oldest first.
         vars_blob: ``codec.encode_vars`` output, opaque here.
         parameters: The node's parameters, a serialized ``rcl_interfaces/msg/ParameterEvent``
-            (``parameters.py`` in the runtime); empty in checkpoints from before they were kept.
+            (``node_parameters.py``); empty in checkpoints from before they were kept.
+        lifecycle: A lifecycle node's primary state (``'active'``, ...); empty for other nodes.
 
     """
 
@@ -83,6 +84,7 @@ class Checkpoint:
     windows: dict[str, list[tuple[int, int]]]
     vars_blob: bytes
     parameters: bytes = b''
+    lifecycle: str = ''
 
 
 class CheckpointStore:
@@ -309,6 +311,8 @@ def serialize(ckpt: Checkpoint, path: Path | str = '<memory>') -> bytes:
     }
     if ckpt.parameters:
         header['parameters'] = ckpt.parameters
+    if ckpt.lifecycle:
+        header['lifecycle'] = ckpt.lifecycle
     packed: bytes = msgpack.packb(header, use_bin_type=True)
     body = b''.join((_PREFIX.pack(MAGIC, FORMAT_VERSION, len(packed)), packed, ckpt.vars_blob))
     return body + hashlib.sha256(body).digest()
@@ -394,6 +398,7 @@ def _checkpoint_from_header(
         windows=_field_windows(header, path),
         vars_blob=vars_blob,
         parameters=_field_bytes(header, 'parameters', path),
+        lifecycle=_field_str(header, 'lifecycle', path) if 'lifecycle' in header else '',
     )
 
 

@@ -475,6 +475,8 @@ class ManagedNode:
             self.sup.events_log.write('switched', self.id, topic=topic, passed_by_relay=passed)
             if self.recovery is not None and self.recovery.on_switched(topic):
                 self._end_recovery()
+        elif kind == StatusKind.INPUTS:
+            self._on_inputs(status)
         elif kind == StatusKind.ERROR:
             _logger.error('%s %s: %s', LOG_PREFIX, self.id, status.get('message'))
             self.sup.events_log.write('error', self.id, message=status.get('message'))
@@ -519,6 +521,20 @@ class ManagedNode:
                 cut = (status.get('restored') or {}).get('cut')
                 self.sm.change_state(NodeState.REPLAYING, f'replay after segment {cut}')
             self._send_sync()
+
+    def _on_inputs(self, status: dict[str, Any]) -> None:
+        """The node made a subscription after HELLO: read that topic in the ring too."""
+        try:
+            inputs = [InputSpec.from_json(i) for i in status.get('inputs', [])]
+        except ProtocolError as err:
+            _logger.error('%s %s: bad INPUTS: %s', LOG_PREFIX, self.id, err)
+            return
+        added = sorted({i.topic for i in inputs} - {i.topic for i in self.inputs})
+        self.inputs = inputs
+        self.sup.events_log.write('inputs', self.id, added=added)
+        _logger.info('%s %s: new input(s) %s', LOG_PREFIX, self.id, ', '.join(added))
+        if self.cfg.method.logs and self.ring is not None:
+            self.ring.ensure(self.inputs)
 
     def _send_sync(self) -> None:
         self.sync_sent = time.monotonic()

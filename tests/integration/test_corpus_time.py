@@ -1,9 +1,9 @@
-"""Nodes that compute with their clock, work in timers, are tuned by parameters or commanded
-by a service at run time, SIGKILLed mid-interval.
+"""Nodes that compute with their clock, work in timers, are tuned by parameters, commanded by
+a service or managed as lifecycle nodes at run time, SIGKILLed mid-interval.
 
-Their clock readings, timer ticks, parameter changes and service requests are inputs
-(docs/architecture.md, "Timers and the clock", "Parameters", "Services"): logged while live,
-replayed as recorded. Two runs of
+Their clock readings, timer ticks, parameter changes, service requests and lifecycle
+transitions are inputs (docs/architecture.md, "Timers and the clock", "Parameters",
+"Services", "Lifecycle nodes"): logged while live, replayed as recorded. Two runs of
 such a node never read the same times, so each crashed run is checked against itself: every
 message applied once and in order, the state equal to what its own readings imply, and no
 reading or tick taken from the replay's time instead of the recorded one (which shows as a lag
@@ -125,3 +125,29 @@ def test_a_node_commanded_by_a_service_keeps_its_commands_through_a_crash(
             total += factor * n
     assert state['total'] == total
     assert result.recoveries[0]['requests_replayed'] == 1
+
+
+def test_a_lifecycle_node_comes_back_active_through_its_callbacks(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    # Configured at once (it subscribes in on_configure), active before its second checkpoint,
+    # then deactivated and activated again after it, before the kill: it must come back
+    # active through on_configure and on_activate, and replay the two later transitions.
+    operator = [sys.executable, str(CORPUS / 'operator.py'), 'lifecycle', '0=configure',
+                '30=activate', '100=deactivate', '120=activate']
+    with child_process(operator, scenario_env(ros_domain), tmp_path, tmp_path / 'operator.log'):
+        result = _crashed('lifecycle_counter.py', 'lifecycle_counter', tmp_path, ros_domain,
+                          other_readers=1)
+    state = result.state
+    assert isinstance(state, dict)
+    assert state['count'] == COUNT
+    assert [counted for counted, _ in state['runs']] == [0, 1, 0, 1], state['runs']
+    total, n = 0, 0
+    for counted, how_many in state['runs']:
+        for _ in range(how_many):
+            n += 1
+            total += counted * n
+    assert state['total'] == total
+    hello = [e for e in result.events if e['kind'] == 'hello']
+    assert hello[-1]['restored']['lifecycle'] == 'active'
+    assert result.recoveries[0]['requests_replayed'] == 2

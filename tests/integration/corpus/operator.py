@@ -1,13 +1,16 @@
 """Not a node under test: the operator, acting when it sees numbers go by (at the first number
-it sees from N on; it may join after the first went by).
+it sees from N on; it may join after the first went by; N=0: as soon as the service is there).
 
-    operator.py gain N=GAIN ...    set /gain_controller's `gain` (its ~/set_parameters service)
-    operator.py fast N=0|1 ...     call /mode_switch/fast_mode (std_srvs/SetBool)
+    operator.py gain N=GAIN ...        set /gain_controller's `gain` (its ~/set_parameters)
+    operator.py fast N=0|1 ...         call /mode_switch/fast_mode (std_srvs/SetBool)
+    operator.py lifecycle N=LABEL ...  ask /lifecycle_counter/change_state for a transition
 """
 
 import sys
 
 import rclpy
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -26,11 +29,16 @@ def main():
         def request(value):
             parameter = Parameter('gain', value=float(value)).to_parameter_msg()
             return SetParameters.Request(parameters=[parameter])
-    else:
+    elif what == 'fast':
         client = node.create_client(SetBool, '/mode_switch/fast_mode')
 
         def request(value):
             return SetBool.Request(data=value == '1')
+    else:
+        client = node.create_client(ChangeState, '/lifecycle_counter/change_state')
+
+        def request(value):
+            return ChangeState.Request(transition=Transition(label=value))
 
     def on_number(msg):
         due = [n for n in plan if n <= msg.data]
@@ -41,6 +49,12 @@ def main():
             client.call_async(request(value))
             print(f'at {msg.data}: {what} {value}', flush=True)
 
+    now = plan.pop(0, None)
+    if now is not None:
+        client.wait_for_service()
+        future = client.call_async(request(now))
+        rclpy.spin_until_future_complete(node, future)
+        print(f'at start: {what} {now}: {future.result()}', flush=True)
     node.create_subscription(Int64, '/numbers', on_number, 100)
     try:
         rclpy.spin(node)

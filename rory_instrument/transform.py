@@ -50,6 +50,7 @@ from rory_instrument.checks import (
 )
 from rory_instrument.clocks import wall_clock_warnings
 from rory_instrument.config import KeyVars, NodeSpec
+from rory_instrument.entities import check_entities
 from rory_instrument.errors import SourceError
 from rory_instrument.manifest import manifest_digest
 
@@ -512,6 +513,7 @@ def instrument_source(
     checker = SpecChecker(keyvars, collect_module(wrapper, file, shown), resolve)
     for spec in specs:
         checker.check(spec)
+    check_entities(wrapper, shown, [spec.class_name for spec in specs])
 
     warnings = wall_clock_warnings(wrapper, shown)
     digest = source_sha256(wrapper)

@@ -50,6 +50,7 @@ from pathlib import Path
 from typing import Any, TypeVar, cast
 
 from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.srv import SetParameters, SetParametersAtomically
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
@@ -662,8 +663,14 @@ class NodeRuntime:
         """Route parameter changes from outside through :meth:`_parameters_from_outside`.
 
         rclpy's parameter services call ``set_parameters_atomically`` on the node; an instance
-        attribute of that name is what they find.
+        attribute of that name is what they find. Its two setting services are held until
+        release like the node's own (``HeldUntilRelease``): a change requested while the node
+        recovers waits, then is applied and logged in order.
         """
+        for srv in node.services:
+            if srv.srv_type in (SetParameters, SetParametersAtomically):
+                srv.callback_group = node_services.HeldUntilRelease(srv.callback_group,
+                                                                    lambda: self.released)
         original = node.set_parameters_atomically
         self._set_parameters_atomically = original
 
@@ -680,6 +687,8 @@ class NodeRuntime:
         if event_clock.in_event():
             return original(parameter_list)  # a callback's own change: replayed with it
         if not self.released:
+            # Called directly (the services wait until release): not in order with the
+            # replay, so refused rather than applied out of order.
             return SetParametersResult(
                 successful=False, reason='[rory] the node is recovering (or not yet released); '
                 'set it again once it is back')

@@ -7,7 +7,7 @@ Example::
         command: [python, out/integrator.py]   # run in this file's folder
         method: rory              # rory | restart | checkpoint | replay
         checkpoint_interval: 2.0  # seconds; default: keyvars.yaml's, else 2.0
-        replay: paced             # paced | fast; default: keyvars.yaml's, else paced
+        replay: fast              # fast | paced; default: keyvars.yaml's, else fast
         hang_timeout: 10.0        # s without a heartbeat: hung, killed, recovered (null: off)
         start_timeout: 60.0       # s from spawn to the first heartbeat (null: off)
         warm_standby: true        # a started process waits to replace it (default: rory only)

@@ -552,11 +552,16 @@ class ManagedNode:
             )
 
     def _replay_pace(self) -> ReplayPace:
-        """The supervisor config's pace, else the node's own (keyvars.yaml), else paced."""
+        """The supervisor config's pace, else the node's own (keyvars.yaml), else fast.
+
+        Fast is the default since callbacks get the clock readings, ticks, parameter changes
+        and requests they had live (docs/architecture.md, "Timers and the clock"); paced is
+        for nodes that read time RORY cannot replay (docs/keyvars.md).
+        """
         if self.cfg.replay is not None:
             return self.cfg.replay
         wanted = (self.hello or {}).get('replay')
-        return ReplayPace(wanted) if wanted in {p.value for p in ReplayPace} else ReplayPace.PACED
+        return ReplayPace(wanted) if wanted in {p.value for p in ReplayPace} else ReplayPace.FAST
 
     def _armed(self) -> bool:
         """The ring matches every publisher the node's own readers have (fresh start)."""

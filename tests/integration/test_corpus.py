@@ -50,7 +50,7 @@ def test_style_recovers_exactly(style: str, tmp_path: Path, ros_domain: int) -> 
     hello = next(e for e in crashed.events if e['kind'] == 'hello')
     if style == 'functional':  # checkpoint_interval: 1.0 in keyvars.yaml
         assert hello['interval'] == 1.0
-    if style == 'enum_machine':  # replay: fast in keyvars.yaml
-        assert crashed.recoveries[0]['replay'] == 'fast'
-    else:
+    if style == 'closures':  # replay: paced in keyvars.yaml
         assert crashed.recoveries[0]['replay'] == 'paced'
+    else:  # the default, and enum_machine's replay: fast
+        assert crashed.recoveries[0]['replay'] == 'fast'

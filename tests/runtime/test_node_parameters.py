@@ -132,3 +132,21 @@ def test_a_change_a_callback_makes_is_not_logged_as_an_input(
     rt.close()
     logged = [e.topic for n in rt.segments.numbers() for e in read_segment(rt.segments.path(n))]
     assert protocol.PARAMETERS_RECORD not in logged
+
+
+def test_the_parameter_setting_services_wait_for_release(
+    context: Context, tmp_path: Path,
+) -> None:
+    from rcl_interfaces.srv import GetParameters, SetParameters, SetParametersAtomically
+    from rclpy.executors import SingleThreadedExecutor
+
+    node = Node('served', context=context)  # with rclpy's parameter services
+    rt = _runtime(tmp_path, node, Mode.RECOVER, 2)
+    executor = SingleThreadedExecutor(context=context)
+    by_type = {srv.srv_type: srv for srv in node.services}
+    setting = [by_type[SetParameters], by_type[SetParametersAtomically]]
+    assert not any(executor.can_execute(srv) for srv in setting)
+    assert executor.can_execute(by_type[GetParameters])  # reading waits for nothing
+    rt._open_gates(next_segment=1)
+    assert all(executor.can_execute(srv) for srv in setting)
+    executor.shutdown()

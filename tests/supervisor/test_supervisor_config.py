@@ -132,7 +132,7 @@ def test_defaults(tmp_path: Path) -> None:
     (node,) = config.nodes
     assert node.name == 'a'
     assert node.method is Method.RORY
-    # unset: the node's own keyvars.yaml setting applies, else the runtime's default (2 s, paced)
+    # unset: the node's own keyvars.yaml setting applies, else the runtime's default (2 s, fast)
     assert node.checkpoint_interval is None
     assert node.replay is None
     assert node.restart_on_clean_exit is False

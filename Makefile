@@ -59,6 +59,7 @@ discovery: $(STAMP)
 faults: $(STAMP)
 	$(PY) -m rory_eval.fault_campaign --runs 8
 	$(PY) -m rory_eval.storm_campaign --runs 40
+	$(PY) -m rory_eval.corpus_campaign --kills 3
 	$(PY) -m rory_eval.target_faults
 
 clean:

@@ -7,11 +7,9 @@ the executor would.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import rclpy
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from rclpy.context import Context
@@ -50,14 +48,6 @@ class Camera(LifecycleNode):
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.calls.append('deactivate')
         return TransitionCallbackReturn.SUCCESS
-
-
-@pytest.fixture
-def context(ros_domain: int) -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    yield ctx
-    ctx.try_shutdown()
 
 
 def _runtime(tmp_path: Path, node: Camera, mode: Mode, incarnation: int) -> NodeRuntime:

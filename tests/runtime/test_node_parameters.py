@@ -7,11 +7,9 @@ services; the runtime's delivery methods are driven directly.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import rclpy
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.context import Context
 from rclpy.node import Node
@@ -47,14 +45,6 @@ class Tuned(Node):
             if p.name == 'gain':
                 self.kp = p.value
         self.seen += [f'post {p.name}' for p in params]
-
-
-@pytest.fixture
-def context(ros_domain: int) -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    yield ctx
-    ctx.try_shutdown()
 
 
 def _runtime(tmp_path: Path, node: Node, mode: Mode, incarnation: int) -> NodeRuntime:

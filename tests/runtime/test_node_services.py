@@ -7,12 +7,10 @@ handed to the service's callback directly, as the executor would.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -26,14 +24,6 @@ from rory_runtime.protocol import Method, Mode
 from rory_runtime.supervisor.recovery import readings_first
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def context(ros_domain: int) -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    yield ctx
-    ctx.try_shutdown()
 
 
 class Switch:

@@ -27,7 +27,7 @@ from typing import Any, TextIO
 import msgpack
 import numpy as np
 
-from . import codec
+from . import codec, node_parameters
 from .errors import CheckpointError, CodecError, LogError
 from .log import SegmentStore, read_segment
 from .store import Checkpoint, CheckpointStore
@@ -323,6 +323,16 @@ def show_checkpoint(store: Path, node: str, which: str, out: TextIO) -> None:
         print(f'  ({note})', file=out)
     for name, value in values.items():
         print(f'  {name} = {render(value)}', file=out)
+    if ckpt.lifecycle:
+        print(f'  lifecycle state: {ckpt.lifecycle}', file=out)
+    if ckpt.parameters:
+        try:
+            parameters = node_parameters.unpack(ckpt.parameters)
+        except ValueError as err:
+            print(f'  parameters: unreadable ({err})', file=out)
+        else:
+            for parameter in parameters:
+                print(f'  parameter {parameter.name} = {parameter.value!r}', file=out)
 
 
 def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:

@@ -11,9 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Int64
 
+from rory_runtime import node_parameters
 from rory_runtime.codec import encode_vars
 from rory_runtime.inspection import main
 from rory_runtime.log import SegmentStore
@@ -75,6 +77,19 @@ def test_a_checkpoint_is_shown_variable_by_variable(store: Path) -> None:
     assert 'grid = ndarray float32 shape (4, 4), min 0 max 1 mean 0.25, nonzero 4' in text
     assert 'scans = 2' in text
     assert "[0] ndarray float64 shape (3,)" in text  # a list of arrays, one line each
+
+
+def test_a_checkpoints_parameters_and_lifecycle_state_follow_its_variables(
+    tmp_path: Path,
+) -> None:
+    root = tmp_path / '.rory'
+    CheckpointStore(root, NODE).write(dataclasses.replace(
+        _checkpoint(1, {'scans': 1}), lifecycle='active',
+        parameters=node_parameters.pack([Parameter('gain', value=2.5)])))
+    code, text = _run(str(root), '--node', NODE, '--checkpoint', 'latest')
+    assert code == 0
+    lines = text.splitlines()
+    assert lines[-3:] == ['  scans = 1', '  lifecycle state: active', '  parameter gain = 2.5']
 
 
 def test_a_dataclass_of_code_not_loaded_here_is_shown_by_its_fields(

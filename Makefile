@@ -39,7 +39,8 @@ eval: $(STAMP)
 # recording keeps up with scan + odom + cloud + 4 MB map, bare against RORY; checkpoint stall
 # for 1 and 16 MB of state; recovery time for crashes at 9, 60 and 300 s; the overhead of each
 # mechanism on amcl and grid_slam, bare against restart/checkpoint/replay/rory; the memory floor
-# of RORY's three processes, started apart or forked from one (~60 min, not in CI).
+# of RORY's three processes, started apart or forked from one; one light node's whole tree; what
+# RORY adds per LaserScan and per timer tick, whole node and in-process (~80 min, not in CI).
 bench: $(STAMP)
 	$(PY) -m rory_eval.bench --runs 10
 	$(PY) -m rory_eval.recording_bench --seconds 30
@@ -47,6 +48,10 @@ bench: $(STAMP)
 	$(PY) -m rory_eval.length_bench
 	$(PY) -m rory_eval.overhead_bench --runs 3
 	$(PY) -m rory_eval.fork_memory_bench --runs 3
+	$(PY) -m rory_eval.light_node_bench --runs 3 --seconds 30
+	$(PY) -m rory_eval.message_cost_bench --runs 5
+	$(PY) -m rory_eval.message_cost_bench --input tick --runs 5
+	$(PY) -m rory_eval.hot_path_bench
 
 # How fast a SIGKILLed and restarted process is heard, per DDS setting.
 discovery: $(STAMP)
@@ -54,8 +59,9 @@ discovery: $(STAMP)
 
 # Every fault kind at random moments, some twice: on the integrator (prints runs, correct, lost,
 # twice; ~4 min); crash storms, 1-5 strikes in a row at drawn gaps, on the integrator (~12 min;
-# a wrong schedule is kept in tests/integration/storm_schedules.json); then on five real targets
-# x three worlds in the simulator (~40 min).
+# a wrong schedule is kept in tests/integration/storm_schedules.json); every corpus node with
+# fast replay, SIGKILLed at random times, against its no-crash run (~10 min); then on five real
+# targets x three worlds in the simulator (~30 min).
 faults: $(STAMP)
 	$(PY) -m rory_eval.fault_campaign --runs 8
 	$(PY) -m rory_eval.storm_campaign --runs 40

@@ -18,6 +18,7 @@ from rory_eval.recording_bench import (
     judge,
     main,
 )
+from rory_runtime import protocol
 from rory_runtime.log import SegmentStore
 
 IDLE = Usage(cpu_seconds=0.0, wall_seconds=1.0, peak_rss_mb=0.0)
@@ -123,6 +124,8 @@ def test_recording_keeps_up_with_the_sensor_load(tmp_path: Path, ros_domain: int
     for n in segments.numbers():
         with Reader(segments.path(n)) as bag:
             for connection in bag.connections:
+                if not protocol.is_input_topic(connection.topic):
+                    continue  # a tick or clock record: no DDS topic, nothing offered
                 offered = connection.ext.offered_qos_profiles  # type: ignore[union-attr]
                 assert offered, f'segment {n} {connection.topic}: no offered QoS'
                 assert {q.reliability for q in offered} == {QosReliability.RELIABLE}

@@ -20,6 +20,7 @@ from rcl_interfaces.msg import Log
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
 from supervision import stop, wait_for
@@ -43,8 +44,12 @@ class _Listener:
         self.events: list[dict[str, Any]] = []
         self.rosout: list[tuple[str, str]] = []
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+        # /rosout's writers keep their last 10 s (transient local): a reader that asks for it
+        # gets a line logged before it matched the supervisor, as rqt_console does.
         self.node.create_subscription(
-            Log, '/rosout', lambda m: self.rosout.append((m.name, m.msg)), 100)
+            Log, '/rosout', lambda m: self.rosout.append((m.name, m.msg)),
+            QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.node.create_subscription(String, '/rory/events', self._on_event, EVENTS_QOS)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)

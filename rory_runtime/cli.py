@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.metadata
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
@@ -17,12 +19,28 @@ from .errors import ConfigError, ParameterError, RoryError
 setproctitle.getproctitle()
 
 
+# ROS arguments that name a file: relative to where `rory supervise` runs, as the supervisor
+# reads them, not to the config's folder, where its nodes run.
+_FILE_ARGUMENTS = frozenset({'--params-file', '--log-config-file'})
+
+
+def absolute_file_arguments(ros_args: Sequence[str]) -> tuple[str, ...]:
+    """``ros_args`` with the file after each of :data:`_FILE_ARGUMENTS` made absolute."""
+    out = list(ros_args)
+    for i, arg in enumerate(out[:-1]):
+        if arg in _FILE_ARGUMENTS:
+            out[i + 1] = os.path.abspath(out[i + 1])
+    return tuple(out)
+
+
 def _supervise(args: argparse.Namespace) -> int:
-    from .supervisor.config import load_config
+    from .supervisor.config import check_commands, check_store, load_config
     from .supervisor.supervisor import StartMode, Supervisor
 
     config = load_config(args.config)
-    ros_args = tuple(args.ros_args)
+    check_commands(config)
+    check_store(config)
+    ros_args = absolute_file_arguments(args.ros_args)
     if ros_args:
         # Passed through to every node, after its own arguments (a second --ros-args section
         # is valid), as launch passes global arguments.
@@ -64,6 +82,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog='rory', description='Crash recovery with state for ROS 2 nodes.'
     )
     parser.add_argument('-v', '--verbose', action='store_true', help='debug logging')
+    parser.add_argument('--version', action='version',
+                        version=f'rory {importlib.metadata.version("rory-ros2")}')
     sub = parser.add_subparsers(dest='command', required=True)
     supervise = sub.add_parser('supervise', help='run nodes and recover them when they crash')
     supervise.add_argument('config', help='supervisor configuration (YAML); then optionally '

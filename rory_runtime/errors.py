@@ -48,13 +48,17 @@ class ConfigError(RoryError):
         path: The configuration file.
         field: Dotted path of the offending field, e.g. ``nodes[0].method``.
         reason: What is wrong with it.
+        at: Line and column (1-based) where the file stops being YAML; then the message is
+            ``file:line:col: reason``, as an editor jumps to.
     """
 
-    def __init__(self, path: Path | str, field: str, reason: str) -> None:
+    def __init__(self, path: Path | str, field: str, reason: str,
+                 at: tuple[int, int] | None = None) -> None:
         self.path = Path(path)
         self.field = field
         self.reason = reason
-        super().__init__(f'{self.path}: {field}: {reason}')
+        where = f'{self.path}: {field}' if at is None else f'{self.path}:{at[0]}:{at[1]}'
+        super().__init__(f'{where}: {reason}')
 
 
 class ParameterError(RoryError):

@@ -26,8 +26,11 @@ Every error names the file and the field (``nodes[0].method``).
 from __future__ import annotations
 
 import math
+import os
 import re
+import shutil
 import sys
+import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +39,7 @@ from typing import Any
 import yaml
 
 from ..errors import ConfigError
+from ..fsutil import make_private_dir
 from ..protocol import NODE_ID_RE, Method, ReplayPace
 
 _TYPE_RE = re.compile(r'[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*')
@@ -169,6 +173,12 @@ def load_config(path: Path | str) -> SupervisorConfig:
         raise ConfigError(path, '(file)', f'not UTF-8 text: {err.reason}') from None
     try:
         doc = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as err:
+        mark = err.problem_mark
+        problem = ' '.join(part for part in (err.problem, err.context and f'({err.context})')
+                           if part)
+        at = None if mark is None else (mark.line + 1, mark.column + 1)
+        raise ConfigError(path, '(file)', f'not valid YAML: {problem or err}', at=at) from None
     except yaml.YAMLError as err:
         raise ConfigError(path, '(file)', f'not valid YAML: {err}') from None
     top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds'})
@@ -204,6 +214,51 @@ def load_config(path: Path | str) -> SupervisorConfig:
     return SupervisorConfig(
         path=path, folder=folder, nodes=nodes, safe_state=safe, store=store, dds=dds
     )
+
+
+def check_commands(config: SupervisorConfig) -> None:
+    """Before anything starts: every node's program exists where its command says.
+
+    A command's first word is looked up on PATH (the node's own ``env`` PATH if it sets one),
+    or, with a slash, relative to the config's folder, where nodes run; for ``python FILE``,
+    FILE is. ``python -m MODULE`` is left to Python (finding a module would import its
+    packages).
+
+    Raises:
+        ConfigError: One line naming the node, its command and what is missing.
+    """
+    for i, node in enumerate(config.nodes):
+        where = f'nodes[{i}].command'
+        program = node.command[0]
+        if '/' in program:
+            found = config.folder / program
+            if not (found.is_file() and os.access(found, os.X_OK)):
+                raise ConfigError(config.path, where, f'node {node.name}: {program} is not an '
+                                  f'executable file (looked in {config.folder})')
+        elif shutil.which(program, path=node.env.get('PATH', os.environ.get('PATH'))) is None:
+            raise ConfigError(config.path, where, f'node {node.name}: {program} is not on PATH')
+        script = node.command[1] if len(node.command) > 1 else '-'
+        if program == sys.executable and not script.startswith('-') and not (
+                config.folder / script).is_file():
+            raise ConfigError(config.path, where, f'node {node.name}: {script}: no such file '
+                              f'(looked in {config.folder}, where nodes run)')
+
+
+def check_store(config: SupervisorConfig) -> None:
+    """Before anything starts: the store folder exists (made 0700 if missing) and takes files.
+
+    Raises:
+        ConfigError: One line naming the store and why it cannot be used.
+    """
+    store = config.store
+    try:
+        make_private_dir(store)
+        with tempfile.TemporaryFile(dir=store):
+            pass
+    except OSError as err:
+        reason = err.strerror or str(err)
+        raise ConfigError(config.path, 'store', f'{store}: cannot create or write: {reason}'
+                          ) from None
 
 
 def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:

@@ -376,9 +376,13 @@ def test_directory_instead_of_file_raises_config_error(tmp_path: Path) -> None:
 
 
 def test_invalid_yaml_raises_config_error(tmp_path: Path) -> None:
-    err = refusal(write(tmp_path, 'nodes: [a, b\n  x: : y\n'))
+    path = write(tmp_path, 'nodes: [a, b\n  x: : y\n')
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    err = info.value
     assert err.field == '(file)'
     assert 'not valid YAML' in err.reason
+    assert str(err).startswith(f'{path.resolve()}:2:')  # where it stops being YAML
 
 
 def test_file_that_is_not_utf8_raises_config_error(tmp_path: Path) -> None:

@@ -1,0 +1,148 @@
+"""Before anything starts, `rory supervise` checks what a user gets wrong first: a program not
+on PATH or a script not where nodes run, a store it cannot use, a YAML error (with its
+line and column), relative file arguments; `rory --version`. Each is one line and exit 2."""
+
+from __future__ import annotations
+
+import stat
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from rory_runtime.cli import absolute_file_arguments
+from rory_runtime.errors import ConfigError
+from rory_runtime.supervisor.config import check_commands, check_store, load_config
+
+
+def _config(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / 'supervise.yaml'
+    path.write_text(textwrap.dedent(text), encoding='utf-8')
+    return path
+
+
+def _refused(check: object, path: Path) -> ConfigError:
+    with pytest.raises(ConfigError) as caught:
+        check(load_config(path))  # type: ignore[operator]
+    return caught.value
+
+
+def test_a_program_not_on_path_is_named_with_its_node(tmp_path: Path) -> None:
+    err = _refused(check_commands, _config(tmp_path, '''
+        nodes:
+          - {name: integrator, command: [integrator_node_nowhere]}
+    '''))
+    assert err.field == 'nodes[0].command'
+    assert err.reason == 'node integrator: integrator_node_nowhere is not on PATH'
+
+
+def test_a_node_can_find_its_program_on_its_own_path(tmp_path: Path) -> None:
+    bin_dir = tmp_path / 'bin'
+    bin_dir.mkdir()
+    program = bin_dir / 'integrator_node'
+    program.write_text('#!/bin/sh\n')
+    program.chmod(program.stat().st_mode | stat.S_IXUSR)
+    check_commands(load_config(_config(tmp_path, f'''
+        nodes:
+          - name: integrator
+            command: [integrator_node]
+            env: {{PATH: {bin_dir}}}
+    ''')))
+
+
+def test_a_script_not_where_nodes_run_is_named(tmp_path: Path) -> None:
+    (tmp_path / 'out').mkdir()
+    (tmp_path / 'out' / 'there.py').write_text('')
+    check_commands(load_config(_config(tmp_path, '''
+        nodes:
+          - {name: a, command: [python, out/there.py]}
+          - {name: b, command: [python, -m, some.module]}
+          - {name: c, command: [python, -c, 'pass']}
+    ''')))
+    err = _refused(check_commands, _config(tmp_path, '''
+        nodes:
+          - {name: a, command: [python, out/there.py]}
+          - {name: integrator, command: [python, out/nothere.py]}
+    '''))
+    assert err.field == 'nodes[1].command'
+    assert err.reason == (f'node integrator: out/nothere.py: no such file (looked in '
+                          f'{tmp_path}, where nodes run)')
+
+
+def test_a_relative_program_must_be_an_executable_file(tmp_path: Path) -> None:
+    (tmp_path / 'run.sh').write_text('#!/bin/sh\n')  # not executable
+    err = _refused(check_commands, _config(tmp_path, '''
+        nodes:
+          - {name: a, command: [./run.sh]}
+    '''))
+    assert err.reason == f'node a: ./run.sh is not an executable file (looked in {tmp_path})'
+
+
+@pytest.mark.parametrize('store', ['/proc/rory-store', 'a_file'])
+def test_a_store_that_cannot_be_made_is_refused_before_anything_starts(
+    tmp_path: Path, store: str
+) -> None:
+    (tmp_path / 'a_file').write_text('data that must survive')
+    err = _refused(check_store, _config(tmp_path, f'''
+        store: {store}
+        nodes:
+          - {{name: a, command: [python, -c, 'pass']}}
+    '''))
+    assert err.field == 'store'
+    assert 'cannot create or write' in err.reason
+    assert (tmp_path / 'a_file').read_text() == 'data that must survive'
+
+
+def test_a_usable_store_is_made_private(tmp_path: Path) -> None:
+    check_store(load_config(_config(tmp_path, '''
+        store: deep/er/store
+        nodes:
+          - {name: a, command: [python, -c, 'pass']}
+    ''')))
+    assert stat.S_IMODE((tmp_path / 'deep' / 'er' / 'store').stat().st_mode) == 0o700
+    assert list((tmp_path / 'deep' / 'er' / 'store').iterdir()) == []
+
+
+def test_a_yaml_error_says_file_line_and_column(tmp_path: Path) -> None:
+    path = _config(tmp_path, 'nodes:\n  - name: a\n   command: [x]\n')
+    with pytest.raises(ConfigError) as caught:
+        load_config(path)
+    text = str(caught.value)
+    assert text.startswith(f'{path}:3:4: not valid YAML: ')
+    assert '\n' not in text and '<unicode string>' not in text
+
+
+def test_relative_file_arguments_are_made_absolute_where_rory_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert absolute_file_arguments(
+        ['-r', '__ns:=/r1', '--params-file', 'st/params.yaml', '-p', 'a:=1',
+         '--log-config-file', '/etc/log.cfg', '--params-file']) == (
+        '-r', '__ns:=/r1', '--params-file', str(tmp_path / 'st' / 'params.yaml'), '-p', 'a:=1',
+        '--log-config-file', '/etc/log.cfg', '--params-file')
+
+
+def _rory(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, '-m', 'rory_runtime.cli', *argv], cwd=cwd,
+                          capture_output=True, text=True, timeout=60, check=False)
+
+
+def test_the_command_line_says_one_line_and_exits_2(tmp_path: Path) -> None:
+    _config(tmp_path, '''
+        nodes:
+          - {name: integrator, command: [integrator_node_nowhere]}
+    ''')
+    done = _rory('supervise', 'supervise.yaml', cwd=tmp_path)
+    assert done.returncode == 2
+    assert done.stderr == (f'rory: error: {tmp_path / "supervise.yaml"}: nodes[0].command: '
+                           'node integrator: integrator_node_nowhere is not on PATH\n')
+    assert not (tmp_path / '.rory').exists()  # nothing started, nothing made
+
+
+def test_version(tmp_path: Path) -> None:
+    done = _rory('--version', cwd=tmp_path)
+    assert done.returncode == 0
+    assert done.stdout.startswith('rory ') and done.stdout.strip() != 'rory'

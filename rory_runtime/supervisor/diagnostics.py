@@ -4,7 +4,8 @@
 publishes) carries one status per supervised node, named ``rory: <node>``, so that
 rqt_robot_monitor, diagnostic_aggregator and any fleet dashboard show it beside the robot's
 other health. Its level follows the node's state: OK while it runs (or has finished), WARN while
-it starts or recovers, ERROR once the supervisor has given up. Its values: state, pid,
+it starts or recovers, ERROR once the supervisor has given up; a running node is WARN while
+its checkpoints are overdue and ERROR while they fail. Its values: state, pid,
 incarnation, method, crashes, last recovery time, age of the last checkpoint, warm standby.
 
 ``/rory/events`` (std_msgs/String, one JSON object per message, reliable, the last 100 kept for
@@ -61,6 +62,11 @@ class NodeHealth:
     last_recovery_age_s: float | None
     last_checkpoint_age_s: float | None
     standby: str  # 'ready', 'starting', 'none' or 'off'
+    # Seconds past what the checkpoint interval lets a running node go without one, if late.
+    checkpoint_overdue_s: float | None = None
+    # The node's last checkpoint failure (a variable that cannot be saved, a full disk), until
+    # a checkpoint succeeds.
+    checkpoint_error: str | None = None
 
 
 OK: Final[bytes] = bytes(DiagnosticStatus.OK)
@@ -78,6 +84,13 @@ def level_of(state: NodeState) -> bytes:
 
 
 def _message(health: NodeHealth) -> str:
+    if health.state == NodeState.RUNNING and health.checkpoint_error is not None:
+        return f'running; checkpoints failing: {health.checkpoint_error}'
+    if health.state == NodeState.RUNNING and health.checkpoint_overdue_s is not None:
+        age_s = health.last_checkpoint_age_s
+        since = 'none yet' if age_s is None else f'last {age_s:.0f} s ago'
+        return (f'running; checkpoints overdue ({since}; the interval follows the node\'s '
+                'ROS time)')
     if health.state == NodeState.FATAL:
         return f'gave up after {health.crashes} crashes; the safe state is held'
     if health.state == NodeState.EXITED:
@@ -109,8 +122,15 @@ def node_status(health: NodeHealth, namespace: str = '/') -> DiagnosticStatus:
         'last checkpoint age (s)': _number(health.last_checkpoint_age_s),
         'warm standby': health.standby,
     }
+    level = level_of(health.state)
+    if health.state == NodeState.RUNNING:
+        # A node that runs but cannot be recovered to now is not OK.
+        if health.checkpoint_error is not None:
+            level = ERROR
+        elif health.checkpoint_overdue_s is not None:
+            level = WARN
     return DiagnosticStatus(
-        level=level_of(health.state),
+        level=level,
         name=f'rory: {qualified}',
         message=_message(health),
         hardware_id=qualified,

@@ -15,6 +15,7 @@ import logging
 import os
 import queue
 import random
+import re
 import secrets
 import shutil
 import signal
@@ -88,6 +89,13 @@ _QUIET = frozenset({NodeState.RUNNING, NodeState.EXITED, NodeState.FATAL})
 STANDBY_DELAY = 1.0
 """Seconds a node runs after its (re)start before its next standby is started: the standby's
 imports must not compete with the node's own start or recovery for the CPU."""
+
+OVERDUE_INTERVALS = 3
+"""Checkpoint intervals a running node may go without a checkpoint before it is overdue
+(WARN on /diagnostics and in the log): one late checkpoint is I/O, three are a cause."""
+
+# The node's ERROR statuses that say a checkpoint was not taken (attach.py's _checkpoint_tick).
+CHECKPOINT_FAILURE_RE = re.compile(r'checkpoint (skipped|\d+ not written)')
 
 HANG_DUMP_GRACE = 0.3
 # A heartbeat this late (3 beats; at most half of hang_timeout) may be a hang: the ring starts
@@ -224,6 +232,10 @@ class ManagedNode:
         self.early_capture: Capture | None = None
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
         self.last_checkpoint_at: float | None = None  # monotonic
+        # The current process's last checkpoint failure, until one succeeds; and whether its
+        # checkpoints being overdue was said (once per episode).
+        self.checkpoint_error: str | None = None
+        self.overdue_said = False
         # The shadow topic of the current process (protocol.replay_topic: one per incarnation),
         # made at each spawn; earlier ones are destroyed once no replay streams on them.
         self._replay_writer: Any = None
@@ -271,6 +283,8 @@ class ManagedNode:
         """Start a new process of this node (main thread only)."""
         self.incarnation += 1
         self.hello = None
+        self.checkpoint_error = None
+        self.overdue_said = False
         self.spawned_ns = time.monotonic_ns()
         self.first_beat_ns = None
         self.hang_kill_at = None
@@ -468,6 +482,8 @@ class ManagedNode:
                 float(status.get('stall_ms', 0.0)),
             )
             self.last_checkpoint_at = time.monotonic()
+            self.checkpoint_error = None
+            self.overdue_said = False
             self.sup.events_log.write('checkpoint', self.id, **_fields(status))
         elif kind == StatusKind.SWITCHED:
             topic = str(status.get('topic'))
@@ -478,6 +494,9 @@ class ManagedNode:
         elif kind == StatusKind.INPUTS:
             self._on_inputs(status)
         elif kind == StatusKind.ERROR:
+            message = str(status.get('message'))
+            if CHECKPOINT_FAILURE_RE.match(message):
+                self.checkpoint_error = message
             _logger.error('%s %s: %s', LOG_PREFIX, self.id, status.get('message'))
             self.sup.events_log.write('error', self.id, message=status.get('message'))
 
@@ -662,6 +681,8 @@ class ManagedNode:
             last_recovery_age_s=age(last[1], now) if last else None,
             last_checkpoint_age_s=age(self.last_checkpoint_at, now),
             standby=standby,
+            checkpoint_overdue_s=self.checkpoint_overdue(now),
+            checkpoint_error=self.checkpoint_error,
         )
 
     def _prepare_standby(self) -> None:
@@ -683,11 +704,35 @@ class ManagedNode:
             self.sup.launcher.discard(self.cfg.command, self.sup.config.folder)
             self.standby_for = None
 
+    def checkpoint_overdue(self, now: float) -> float | None:
+        """Seconds past the time a running node must have checkpointed by, if it is late.
+
+        Checkpoints come every interval of the node's ROS time: under ``use_sim_time`` with no
+        /clock, or a /clock that stops, none come at all; so do failing ones.
+        """
+        if (self.sm.state != NodeState.RUNNING or not self.cfg.method.checkpoints
+                or self.running_since is None):
+            return None
+        interval = float((self.hello or {}).get('interval') or 2.0)
+        since = max(self.last_checkpoint_at or 0.0, self.running_since)
+        late = now - since - OVERDUE_INTERVALS * interval
+        return late if late > 0 else None
+
     def tick(self, now: float) -> None:
         """Time-driven work: hang detection, SYNC resends, arming, backoff expiry, standby."""
         state = self.sm.state
         if state in _LIVE:
             self._check_heartbeat(now)
+        if not self.overdue_said and self.checkpoint_overdue(now) is not None:
+            self.overdue_said = True
+            age_s = None if self.last_checkpoint_at is None else now - self.last_checkpoint_at
+            _logger.warning(
+                '%s %s: no checkpoint for %s: the interval follows the node\'s ROS time (under '
+                'use_sim_time, is /clock advancing?), or its checkpoints fail (see its errors); '
+                'a crash now loses more', LOG_PREFIX, self.id,
+                'the whole run' if age_s is None else f'{age_s:.1f} s')
+            self.sup.events_log.write('checkpoints_overdue', self.id,
+                                      since_s=None if age_s is None else round(age_s, 1))
         if state == NodeState.RUNNING and self.recovery is not None:
             # Released, still relaying until every topic is live again: a gap the relay shows
             # (a message lost between R and the live reader) is said now, not only at the end

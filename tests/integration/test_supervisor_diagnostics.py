@@ -41,6 +41,7 @@ class _Listener:
         self.node = Node('diagnostics_listener', context=self.context)
         self.status: dict[str, str] = {}
         self.level: bytes | None = None
+        self.message = ''
         self.events: list[dict[str, Any]] = []
         self.rosout: list[tuple[str, str]] = []
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
@@ -66,6 +67,7 @@ class _Listener:
             if status.name == 'rory: integrator':
                 self.status = {kv.key: kv.value for kv in status.values}
                 self.level = status.level
+                self.message = status.message
 
     def _on_event(self, msg: String) -> None:
         self.events.append(json.loads(msg.data))
@@ -132,5 +134,28 @@ def test_ros_args_reach_the_supervisor_and_every_node_and_its_log_reaches_rosout
                               and '[rory] integrator: ARMING -> RUNNING' in text
                               for name, text in listener.rosout), 20,
                   "the supervisor's log on /rosout")
+    finally:
+        stop(sup)
+
+
+def test_a_node_on_sim_time_without_a_clock_is_warned_about_overdue_checkpoints(
+    tmp_path: Path, ros_domain: int, listener: _Listener
+) -> None:
+    # use_sim_time with no /clock: the node's ROS time stands still, so does its checkpoint
+    # timer. Nothing fails; the operator must still hear that a crash would lose the run.
+    config = prepare(tmp_path, 'rory', interval=0.5, pace='fast')
+    sup = subprocess.Popen(
+        [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config),
+         '--ros-args', '-p', 'use_sim_time:=true'],
+        env=scenario_env(ros_domain), cwd=tmp_path, stdout=subprocess.DEVNULL,
+        stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wait_for(lambda: listener.status.get('state') == 'RUNNING'
+                  and listener.level == bytes(DiagnosticStatus.WARN), 30,
+                  'a WARN on /diagnostics for the running node')
+        assert listener.message.startswith('running; checkpoints overdue (none yet')
+        wait_for(lambda: any(e['kind'] == 'checkpoints_overdue' for e in listener.events), 10,
+                  'the checkpoints_overdue event')
+        assert not any(e['kind'] == 'checkpoint' for e in listener.events)
     finally:
         stop(sup)

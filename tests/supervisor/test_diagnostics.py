@@ -7,6 +7,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 
 from rory_runtime.supervisor.diagnostics import NodeHealth, level_of, node_status
 from rory_runtime.supervisor.states import NodeState
+from rory_runtime.supervisor.supervisor import CHECKPOINT_FAILURE_RE
 
 
 def _health(state: NodeState, **kw: object) -> NodeHealth:
@@ -71,3 +72,39 @@ def test_a_supervisor_in_a_namespace_names_its_nodes_with_it() -> None:
     assert node_status(_health(NodeState.RUNNING)).name == 'rory: mapper'
     status = node_status(_health(NodeState.RUNNING), '/robot1')
     assert status.name == 'rory: robot1/mapper' and status.hardware_id == 'robot1/mapper'
+
+
+def test_a_running_node_whose_checkpoints_are_overdue_is_a_warning() -> None:
+    status = node_status(_health(NodeState.RUNNING, last_checkpoint_age_s=None,
+                                 checkpoint_overdue_s=0.7))
+    assert status.level == DiagnosticStatus.WARN
+    assert status.message == ("running; checkpoints overdue (none yet; the interval follows "
+                              "the node's ROS time)")
+    late = node_status(_health(NodeState.RUNNING, last_checkpoint_age_s=31.0,
+                               checkpoint_overdue_s=25.0))
+    assert 'last 31 s ago' in late.message
+
+
+def test_a_running_node_whose_checkpoints_fail_is_an_error_until_one_succeeds() -> None:
+    failing = node_status(_health(
+        NodeState.RUNNING, checkpoint_error="checkpoint skipped: variable 'seen' is a defaultdict",
+        checkpoint_overdue_s=4.0))
+    assert failing.level == DiagnosticStatus.ERROR
+    assert failing.message == ("running; checkpoints failing: checkpoint skipped: variable "
+                               "'seen' is a defaultdict")
+    assert node_status(_health(NodeState.RUNNING)).level == DiagnosticStatus.OK
+
+
+def test_checkpoint_health_does_not_change_other_states() -> None:
+    status = node_status(_health(NodeState.FATAL, checkpoint_error='checkpoint skipped: x'))
+    assert status.level == DiagnosticStatus.ERROR and 'gave up' in status.message
+
+
+@pytest.mark.parametrize(('message', 'failing'), [
+    ("checkpoint skipped: variable 'seen' is a defaultdict", True),
+    ('checkpoint 12 not written: [Errno 28] No space left on device', True),
+    ('checkpoint refused: /store/n/checkpoints/0000000003.ckpt: bad checksum', False),
+    ('cannot log a message of /scan: disk full', False),
+])
+def test_which_node_errors_say_a_checkpoint_was_not_taken(message: str, failing: bool) -> None:
+    assert bool(CHECKPOINT_FAILURE_RE.match(message)) == failing

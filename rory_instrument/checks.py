@@ -92,10 +92,12 @@ class NotState:
     Attributes:
         what: The value with its article: ``a Publisher``, ``the node itself``.
         hint: What to list instead.
+        why: Why it cannot be a key variable.
     """
 
     what: str
     hint: str
+    why: str = 'which is not state'
 
 
 _NODE = NotState('a Node', 'list the data the node keeps instead')
@@ -123,6 +125,13 @@ NOT_STATE_FUNCTIONS: Mapping[str, NotState] = {
     'subprocess.Popen': NotState('a process', 'list the data exchanged with it instead'),
     'rclpy.action.ActionClient': NotState('an ActionClient', _ACTION),
     'rclpy.action.ActionServer': NotState('an ActionServer', _ACTION),
+    # State, but not what a checkpoint holds (codec.py refuses them at the first checkpoint).
+    'collections.defaultdict': NotState(
+        'a defaultdict', 'use a plain dict (dict.setdefault, dict.get)',
+        'which a checkpoint cannot hold: its default_factory is code'),
+    'collections.Counter': NotState(
+        'a Counter', 'use a plain dict of counts (counts[k] = counts.get(k, 0) + 1)',
+        'which a checkpoint cannot hold (a dict subclass)'),
 }
 # Modules whose every object belongs to the running process.
 NOT_STATE_MODULES: Mapping[str, str] = {
@@ -772,7 +781,7 @@ class SpecChecker:
             if held is not None:
                 raise SourceError(
                     module.display, assignment.line, assignment.col,
-                    f'{holder} holds {held.what} ({assignment.value}), which is not state; '
+                    f'{holder} holds {held.what} ({assignment.value}), {held.why}; '
                     f'{held.hint}',
                 )
         if len(segments) == 1:

@@ -316,6 +316,13 @@ NOT_STATE = [
     ('in_callback', 'def cb(msg):\n            self.x = open(msg.path)', 11, 13,
      'C.x holds an open file (open(...)), which is not state; list the data read from or '
      'written to it instead'),
+    # State, but not what a checkpoint holds.
+    ('defaultdict', 'from collections import defaultdict as dd\n        self.x = dd(list)', 11, 9,
+     'C.x holds a defaultdict (dd(...)), which a checkpoint cannot hold: its default_factory '
+     'is code; use a plain dict (dict.setdefault, dict.get)'),
+    ('counter', 'import collections\n        self.x = collections.Counter()', 11, 9,
+     'C.x holds a Counter (collections.Counter()), which a checkpoint cannot hold (a dict '
+     'subclass); use a plain dict of counts (counts[k] = counts.get(k, 0) + 1)'),
 ]
 
 HEADER = '''\

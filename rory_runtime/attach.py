@@ -494,6 +494,11 @@ class NodeRuntime:
         self._status_pub: Publisher | None = None
         self._startup_timer: Timer | None = None
         self._hello_sent = False
+        # A user callback raised (the process is going down with it), or the exit-time
+        # checkpoint is done: see close().
+        self._callback_failed = False
+        self._final_taken = False
+        self._closing = False
         self._started = False
         self._io = _IoWorker()
         # The buffers of the last packed checkpoint's large arrays, for the next snapshot.
@@ -576,17 +581,22 @@ class NodeRuntime:
                 return None
             with self.lock:
                 clock = self.clock
-                if clock is None:
-                    return callback()
-                # Write-ahead, like a message: the tick is in the log before it has any effect.
-                self._write_record(protocol.TIMER_RECORD, time.time_ns(),
-                                   int(event_clock.original_now(timer.clock).nanoseconds), index)
-                self.stats['ticks'] += 1
-                clock.begin_live()
+                if clock is not None:
+                    # Write-ahead, like a message: the tick is in the log before it has any
+                    # effect.
+                    self._write_record(protocol.TIMER_RECORD, time.time_ns(),
+                                       int(event_clock.original_now(timer.clock).nanoseconds),
+                                       index)
+                    self.stats['ticks'] += 1
+                    clock.begin_live()
                 try:
                     return callback()
+                except BaseException:
+                    self._callback_failed = True
+                    raise
                 finally:
-                    clock.end()
+                    if clock is not None:
+                        clock.end()
 
         timer.callback = locked_tick
         timer._rory = True  # type: ignore[attr-defined]
@@ -609,17 +619,20 @@ class NodeRuntime:
         def logged_request(request: Any, response: Any) -> Any:
             with self.lock:
                 clock = self.clock
-                if clock is None:
-                    return callback(request, response)
-                self._write_record(protocol.REQUEST_RECORD, time.time_ns(), 0, index,
-                                   node_services.pack_request(request),
-                                   node_services.RECORD_TYPE)
-                self.stats['requests'] += 1
-                clock.begin_live()
+                if clock is not None:
+                    self._write_record(protocol.REQUEST_RECORD, time.time_ns(), 0, index,
+                                       node_services.pack_request(request),
+                                       node_services.RECORD_TYPE)
+                    self.stats['requests'] += 1
+                    clock.begin_live()
                 try:
                     return callback(request, response)
+                except BaseException:
+                    self._callback_failed = True
+                    raise
                 finally:
-                    clock.end()
+                    if clock is not None:
+                        clock.end()
 
         srv.callback = logged_request
 
@@ -694,17 +707,20 @@ class NodeRuntime:
                 'set it again once it is back')
         with self.lock:
             clock = self.clock
-            if clock is None:
-                return original(parameter_list)
-            data = node_parameters.pack(parameter_list)
-            self._write_record(protocol.PARAMETERS_RECORD, time.time_ns(), 0, 0, data,
-                               node_parameters.RECORD_TYPE)
-            self.stats['parameter_changes'] += 1
-            clock.begin_live()
+            if clock is not None:
+                data = node_parameters.pack(parameter_list)
+                self._write_record(protocol.PARAMETERS_RECORD, time.time_ns(), 0, 0, data,
+                                   node_parameters.RECORD_TYPE)
+                self.stats['parameter_changes'] += 1
+                clock.begin_live()
             try:
                 return original(parameter_list)
+            except BaseException:
+                self._callback_failed = True
+                raise
             finally:
-                clock.end()
+                if clock is not None:
+                    clock.end()
 
     def _replay_request(self, index: int, data: bytes, event_ns: int,
                         readings: list[Reading]) -> None:
@@ -987,6 +1003,9 @@ class NodeRuntime:
                     inp.callback(msg, info)
                 else:
                     inp.callback(msg)
+            except BaseException:
+                self._callback_failed = True
+                raise
             finally:
                 if clock is not None:
                     clock.end()
@@ -1190,8 +1209,15 @@ class NodeRuntime:
             self._io.submit(writer.close)
 
     def _checkpoint_tick(self) -> None:
-        assert self.node is not None
         self._retire_shadow()
+        persist = self._checkpoint()
+        if persist is not None:
+            self._io.submit(persist)
+
+    def _checkpoint(self) -> Callable[[], None] | None:
+        """Snapshot the node now, under the lock; returns the job that writes it (None when
+        the snapshot was refused)."""
+        assert self.node is not None
         began = time.perf_counter()
         with self.lock:
             # The snapshot: the only part that needs the node paused between two callbacks.
@@ -1202,7 +1228,7 @@ class NodeRuntime:
                                                self._array_pool)
             except CodecError as err:
                 self._error(f'checkpoint skipped: {err}')
-                return
+                return None
             cut, writer = self._rotate_segment() if self.method.logs else (None, None)
             windows = {topic: w.snapshot() for topic, w in self.windows.items()}
             parameters = node_parameters.snapshot(self.node)
@@ -1252,7 +1278,7 @@ class NodeRuntime:
                 total_ms=(time.perf_counter() - began) * 1000.0,
             )
 
-        self._io.submit(persist)
+        return persist
 
     # -- reporting ----------------------------------------------------------------------------
 
@@ -1263,7 +1289,12 @@ class NodeRuntime:
             kind, self.env.node_id, self.env.incarnation, key=self.env.secret,
             sent_ns=time.time_ns(), **fields
         )
-        self._status_pub.publish(String(data=text))
+        if not self._closing:
+            self._status_pub.publish(String(data=text))
+            return
+        # At exit the context may be shut down already: the checkpoint is on disk regardless.
+        with contextlib.suppress(Exception):
+            self._status_pub.publish(String(data=text))
 
     def _error(self, message: str) -> None:
         if message in self.reported_errors:
@@ -1277,8 +1308,21 @@ class NodeRuntime:
 
     def close(self) -> None:
         """Finish background I/O and seal the open segment, so a clean exit leaves complete
-        bags."""
+        bags; after a clean stop (SIGINT, SIGTERM), take a last checkpoint first."""
         self._io.drain()
+        if (self.released and self.method.checkpoints and self.node is not None
+                and not self._callback_failed and not self._final_taken):
+            # The node stopped between two callbacks (none raised): its state now is what a
+            # next run with --resume, `rory inspect` or `rory bundle` should find. After an
+            # exception a callback may have been cut halfway: no checkpoint of that.
+            self._final_taken = True
+            self._closing = True
+            try:
+                persist = self._checkpoint()
+                if persist is not None:
+                    persist()
+            except Exception as err:  # at exit nothing may propagate; the older one stays
+                _logger.error('[rory] no checkpoint at exit: %s: %s', type(err).__name__, err)
         with self.lock:
             if self.writer is not None:
                 with contextlib.suppress(LogError):

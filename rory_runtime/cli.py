@@ -1,4 +1,4 @@
-"""The ``rory`` command: supervise, sim, eval, inspect, bundle and reproduce."""
+"""The ``rory`` command: supervise, sim, eval, inspect, kill, bundle and reproduce."""
 
 from __future__ import annotations
 
@@ -68,6 +68,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .bundle import reproduce_main
 
         return reproduce_main(argv[1:])
+    if argv[:1] == ['kill']:
+        from .kill import main as kill_main
+
+        return kill_main(argv[1:])
     if argv[:1] == ['inspect']:
         from .inspection import main as inspect_main
 
@@ -102,6 +106,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 '(rory eval --help)', add_help=False)
     sub.add_parser('inspect', help="a store's nodes, checkpoints and log segments "
                                    '(rory inspect --help)', add_help=False)
+    sub.add_parser('kill', help="signal a supervised node's current process, nothing else "
+                                '(rory kill --help)', add_help=False)
     sub.add_parser('bundle', help="a node's last checkpoint, the messages after it and its "
                                   'crash report, as one tar file (rory bundle --help)',
                    add_help=False)

@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,8 @@ from supervision import wait_for
 
 from rory_eval.scenario import EXAMPLE, Kill, prepare, run, scenario_env
 from rory_runtime import protocol
+from rory_runtime.codec import decode_vars
+from rory_runtime.store import CheckpointStore
 
 pytestmark = pytest.mark.ros
 
@@ -226,3 +229,27 @@ def test_under_localhost_rory_runs_no_shared_memory_and_still_hears_plain_peers(
     wait_for(lambda: any(t.startswith('dds.udp') for t in _threads(standby_pid)), 20,
              'the standby participant')
     assert not [t for t in _threads(standby_pid) if t.startswith('dds.shm')]
+
+
+def test_a_clean_stop_leaves_a_checkpoint_of_the_state_at_the_stop(
+    tmp_path: Path, ros_domain: int, reap: list[Any]
+) -> None:
+    # Checkpoints every 60 s: none would be taken in this run but the one at the stop.
+    config = prepare(tmp_path, 'rory', interval=60.0, pace=None)
+    env = scenario_env(ros_domain)
+    sup = _supervise(config, env)
+    reap.append(sup)
+    store = tmp_path / 'store-rory'
+    wait_for(lambda: any(e.get('new') == 'RUNNING' for e in read_events(store)), 60,
+             'the node running')
+    publisher = subprocess.run(
+        [sys.executable, str(EXAMPLE / 'count_publisher.py'), '40', '50', '2'], env=env,
+        cwd=tmp_path, capture_output=True, timeout=60, check=False)
+    assert publisher.returncode == 0, publisher.stdout
+    time.sleep(0.5)  # acknowledged is received; let the callbacks run
+    sup.send_signal(signal.SIGINT)
+    assert sup.wait(timeout=30) == 0
+    latest = CheckpointStore(store, 'integrator').latest_valid()
+    assert latest is not None
+    values = decode_vars(latest.vars_blob)
+    assert (values['count'], values['total']) == (40, 40 * 41 // 2)

@@ -11,6 +11,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import pytest
 from rcl_interfaces.msg import ListParametersResult
 from rclpy.parameter import Parameter
 
@@ -72,3 +73,59 @@ def test_each_checkpoint_holds_its_instant_while_buffers_pass_from_one_to_the_ne
             node.grid[tick, tick] = -1.0
     finally:
         rt.close()
+
+
+def _released(tmp_path: Path, node: _Node) -> NodeRuntime:
+    env = RuntimeEnv(node_id='n', store=tmp_path, incarnation=1, method=Method.CHECKPOINT,
+                     mode=Mode.FRESH, interval=2.0)
+    rt = NodeRuntime(CheckpointSpec(('ticks',), 'sha256:0'), env)
+    rt.node = node  # type: ignore[assignment]
+    rt._next_seq = rt.checkpoints.next_seq()
+    return rt
+
+
+def test_a_clean_exit_takes_a_last_checkpoint_of_the_state_now(tmp_path: Path) -> None:
+    node = _Node()
+    rt = _released(tmp_path, node)
+    rt.close()  # not released yet: nothing to keep
+    assert rt.checkpoints.latest_valid() is None
+    rt._open_gates(next_segment=1)
+    node.ticks = 41
+    rt.close()
+    latest = rt.checkpoints.latest_valid()
+    assert latest is not None and codec.decode_vars(latest.vars_blob)['ticks'] == 41
+    rt.close()  # once
+    assert rt.checkpoints.latest_valid() == latest
+
+
+def test_after_a_callback_raised_no_checkpoint_is_taken_at_exit(tmp_path: Path) -> None:
+    from dataclasses import dataclass, field
+
+    from rclpy.qos import QoSProfile
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Int64
+
+    node = _Node()
+    rt = _released(tmp_path, node)
+
+    def half_applied(msg: Int64) -> None:
+        node.ticks = -1  # the state is half-way through this message
+        raise ValueError('bad message')
+
+    @dataclass
+    class _Sub:
+        topic_name: str = '/x'
+        callback: object = half_applied
+        msg_type: type = Int64
+        raw: bool = False
+        qos_profile: QoSProfile = field(default_factory=lambda: QoSProfile(depth=10))
+
+    sub = _Sub()
+    rt.adopt_subscription(sub)  # type: ignore[arg-type]
+    rt._open_gates(next_segment=1)
+    info = {'source_timestamp': 1, 'received_timestamp': 1, 'publication_sequence_number': 1,
+            'reception_sequence_number': None}
+    with pytest.raises(ValueError, match='bad message'):
+        sub.callback(bytes(serialize_message(Int64(data=1))), info)  # type: ignore[operator]
+    rt.close()
+    assert rt.checkpoints.latest_valid() is None

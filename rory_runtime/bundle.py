@@ -163,8 +163,13 @@ def _extract(bundle: Path, into: Path) -> dict[str, Any]:
     return manifest
 
 
-def reproduce(bundle: Path, into: Path, *, timeout: float, domain: int) -> int:
-    """Run the bundle's node on its store until its first crash; 0 reproduced, 1 not."""
+def reproduce(bundle: Path, into: Path, *, timeout: float, domain: int,
+              log: Path | None = None) -> int:
+    """Run the bundle's node on its store until its first crash; 0 reproduced, 1 not.
+
+    ``log``: where the supervisor's output goes (default: ``into``/supervisor.log); it stays
+    after ``into`` is removed when it lies outside it.
+    """
     manifest = _extract(bundle, into)
     node = str(manifest['node'])
     if manifest.get('command') is None:
@@ -179,9 +184,10 @@ def reproduce(bundle: Path, into: Path, *, timeout: float, domain: int) -> int:
         'store': 'store',
     }, sort_keys=False))
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    log = into / 'supervisor.log'
+    log = into / 'supervisor.log' if log is None else log
     print(f'rory reproduce: {node} from checkpoint {manifest["checkpoint"]["seq"]}, '
-          f'{len(manifest["segments"])} log segment(s) after its cut; log in {log}')
+          f'{len(manifest["segments"])} log segment(s) after its cut; log in {log}',
+          flush=True)
     events_path = into / 'store' / 'events.jsonl'
     with log.open('wb') as out:
         sup = subprocess.Popen(
@@ -199,11 +205,25 @@ def reproduce(bundle: Path, into: Path, *, timeout: float, domain: int) -> int:
                     sup.wait()
 
 
+# What the watcher says as the run goes, by event kind (the first of each).
+_PROGRESS = {
+    'spawn': 'started the node',
+    'hello': 'restored the checkpoint; replaying what was logged after it',
+    'recovered': 'replayed everything; watching 5 s more for a crash',
+}
+
+
 def _watch(events_path: Path, node: str, sup: subprocess.Popen[bytes], timeout: float) -> int:
     deadline = time.monotonic() + timeout
     settled_at: float | None = None
+    said: set[str] = set()
     while time.monotonic() < deadline:
         events = _events_of(events_path.parent, node)
+        for event in events:
+            kind = str(event.get('kind'))
+            if kind in _PROGRESS and kind not in said:
+                said.add(kind)
+                print(f'rory reproduce: {_PROGRESS[kind]}', flush=True)
         exits = [e for e in events if e.get('kind') == 'exit' and e.get('code') != 0]
         if exits:
             time.sleep(0.3)  # the died_on record follows the exit
@@ -262,8 +282,11 @@ def reproduce_main(argv: Sequence[str]) -> int:
     keep = args.directory is not None
     into = args.directory or Path(tempfile.mkdtemp(prefix='rory-reproduce-'))
     into.mkdir(parents=True, exist_ok=True)
+    # The log it names outlives a temporary extraction folder.
+    log = None if keep else into.with_name(f'{into.name}.log')
     try:
-        return reproduce(args.bundle, into.resolve(), timeout=args.timeout, domain=args.domain)
+        return reproduce(args.bundle, into.resolve(), timeout=args.timeout, domain=args.domain,
+                         log=log)
     except BundleError as err:
         print(f'rory reproduce: {err}', file=sys.stderr)
         return 2

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -66,14 +67,22 @@ def test_a_bundle_reproduces_the_crash_on_the_message_that_caused_it(
     assert any(n.startswith('store/fragile/checkpoints/') for n in names)
     assert any(n.startswith('quarantine/') for n in names)
 
-    # Elsewhere (another folder, another domain): it dies on 77 again.
+    # Elsewhere (a temporary folder, another domain): it dies on 77 again, saying how far it
+    # is as it goes; the log it names is still there afterwards.
     capsys.readouterr()
-    code = reproduce_main([str(crash), '-C', str(tmp_path / 'desk'), '--timeout', '60',
-                           '--domain', str(ros_domain)])
+    code = reproduce_main([str(crash), '--timeout', '60', '--domain', str(ros_domain)])
     out = capsys.readouterr().out
-    assert code == 0, out + (tmp_path / 'desk' / 'supervisor.log').read_text()[-3000:]
+    named = re.search(r'log in (\S+)', out)
+    assert named is not None, out
+    log = Path(named.group(1))
+    assert code == 0, out + log.read_text()[-3000:]
     assert 'REPRODUCED: fragile died (exit status 1)' in out
     assert 'while applying /numbers' in out and 'seq 77)' in out  # the 77th message: 77
+    assert 'rory reproduce: started the node' in out
+    assert 'rory reproduce: restored the checkpoint' in out
+    assert log.is_file() and 'fragile' in log.read_text()
+    assert not log.with_suffix('').exists()  # the extracted bundle is gone
+    log.unlink()
 
 
 def test_bad_input_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

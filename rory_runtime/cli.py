@@ -94,8 +94,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                            '--ros-args ... for the supervisor and every node')
     start = supervise.add_mutually_exclusive_group()
     start.add_argument('--fresh', action='store_true',
-                       help='start every node empty, setting an earlier run aside in '
-                            '<store>/.previous (default after a clean stop)')
+                       help='start every node empty, setting the earlier run aside in '
+                            '<store>/.previous (older ones in .previous.1, ...: keep_runs '
+                            'in all, 3 by default; the default after a clean stop)')
     start.add_argument('--resume', action='store_true',
                        help="recover every node from the store's checkpoints and logs "
                             '(default after a run that did not stop cleanly)')

@@ -103,6 +103,8 @@ class SupervisorConfig:
     safe_state: tuple[SafeAction, ...]
     store: Path
     dds: str = 'fast_rediscovery'
+    # Earlier runs a fresh start keeps in the store (.previous, .previous.1, ...).
+    keep_runs: int = 3
 
 
 class _Fields:
@@ -181,7 +183,7 @@ def load_config(path: Path | str) -> SupervisorConfig:
         raise ConfigError(path, '(file)', f'not valid YAML: {problem or err}', at=at) from None
     except yaml.YAMLError as err:
         raise ConfigError(path, '(file)', f'not valid YAML: {err}') from None
-    top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds'})
+    top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds', 'keep_runs'})
     folder = path.parent
 
     nodes_raw = top.required('nodes')
@@ -211,8 +213,12 @@ def load_config(path: Path | str) -> SupervisorConfig:
     dds = top.obj.get('dds', 'fast_rediscovery')
     if dds not in ('fast_rediscovery', 'inherit'):
         raise top.error('dds', f'must be fast_rediscovery or inherit, got {dds!r}')
+    keep_runs = top.obj.get('keep_runs', SupervisorConfig.keep_runs)
+    if isinstance(keep_runs, bool) or not isinstance(keep_runs, int) or keep_runs < 1:
+        raise top.error('keep_runs', f'must be a positive integer, got {keep_runs!r}')
     return SupervisorConfig(
-        path=path, folder=folder, nodes=nodes, safe_state=safe, store=store, dds=dds
+        path=path, folder=folder, nodes=nodes, safe_state=safe, store=store, dds=dds,
+        keep_runs=keep_runs,
     )
 
 

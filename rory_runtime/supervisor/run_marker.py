@@ -11,8 +11,10 @@ nodes nobody stopped: the next run resumes them from the store instead of starti
 from __future__ import annotations
 
 import fcntl
+import itertools
 import json
 import os
+import shutil
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -107,3 +109,24 @@ class RunMarker:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, self._marker)
+
+
+def make_room_for_previous(store: Path, keep: int) -> list[Path]:
+    """Before a fresh run sets the current one aside in ``.previous``: move each earlier run
+    one place older (``.previous`` to ``.previous.1``, ...), dropping what would be older
+    than ``keep`` runs in all.
+
+    Returns:
+        The folders that hold earlier runs now, newest first (empty: there was none).
+    """
+    previous = store / '.previous'
+    if not previous.exists():
+        return []
+    chain = [previous, *(store / f'.previous.{i}' for i in range(1, keep))]
+    for stale in (chain[-1], store / f'.previous.{keep}'):
+        if stale.exists():  # the oldest kept is pushed out
+            shutil.rmtree(stale)
+    for newer, older in reversed(list(itertools.pairwise(chain))):
+        if newer.exists():
+            newer.rename(older)
+    return [folder for folder in chain[1:] if folder.exists()]

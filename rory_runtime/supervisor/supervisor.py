@@ -52,7 +52,7 @@ from .poison import PoisonGuard
 from .process import Child, Launcher, RestartPolicy, describe_exit
 from .recovery import Recovery
 from .ring import Capture, Ring, RingContext
-from .run_marker import PreviousRun, RunMarker
+from .run_marker import PreviousRun, RunMarker, make_room_for_previous
 from .safety import SafeState
 from .standby import ForkLauncher
 from .states import LOG_PREFIX, NodeState, NodeStateMachine, StateEvent
@@ -936,12 +936,18 @@ class Supervisor:
         return newest or (previous.started or None)
 
     def _prepare_store(self) -> None:
-        # A fresh run must not mix with an earlier run's checkpoints and logs: set them aside
-        # (the newest earlier run is kept under .previous/ for inspection).
+        # A fresh run must not mix with an earlier run's checkpoints and logs: set them aside.
+        # The newest earlier run is under .previous/, older ones under .previous.1/, ...:
+        # keep_runs of them in all.
         store = self.config.store
         make_private_dir(store)
         previous = store / '.previous'
         events = store / 'events.jsonl'
+        if events.exists() or any((store / n.name).exists() for n in self.config.nodes):
+            kept = make_room_for_previous(store, self.config.keep_runs)
+            if kept:
+                _logger.info('%s earlier runs kept in %s (newest) to %s (keep_runs: %d)',
+                             LOG_PREFIX, previous, kept[-1], self.config.keep_runs)
         if events.exists():
             make_private_dir(previous)
             events.replace(previous / 'events.jsonl')

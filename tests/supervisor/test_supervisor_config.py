@@ -444,3 +444,12 @@ def test_a_safe_action_may_be_relative_and_scoped_to_some_nodes(tmp_path: Path) 
     scoped, everyone = config.safe_state
     assert scoped.topic == 'e_stop' and scoped.nodes == ('a',)
     assert everyone.topic == '/all/stop' and everyone.nodes is None
+
+
+def test_keep_runs_defaults_to_three_and_must_be_a_positive_integer(tmp_path: Path) -> None:
+    node = 'nodes: [{name: a, command: [x]}]\n'
+    assert load_config(write(tmp_path, node)).keep_runs == 3
+    assert load_config(write(tmp_path, node + 'keep_runs: 1\n')).keep_runs == 1
+    for bad in ('0', 'true', '2.5', 'many'):
+        err = refusal(write(tmp_path, node + f'keep_runs: {bad}\n'))
+        assert err.field == 'keep_runs' and 'positive integer' in err.reason

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from .protocol import ENV_NODE
 
-__all__ = ['checkpoint_module', 'checkpointed']
+__all__ = ['checkpoint_module', 'checkpointed', 'supervise']
 
 C = TypeVar('C', bound=type)
 
@@ -61,3 +61,11 @@ def checkpoint_module(
         checkpoint_interval=checkpoint_interval,
         replay=replay,
     )
+
+
+def supervise(config: Any, **options: Any) -> int:
+    """Run a supervisor from a program, as ``rory supervise`` does; see
+    :func:`rory_runtime.supervisor.embed.supervise` (imported only when called)."""
+    from .supervisor.embed import supervise as embedded_supervise
+
+    return embedded_supervise(config, **options)

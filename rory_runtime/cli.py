@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import importlib.metadata
 import logging
-import os
 import sys
 from collections.abc import Sequence
 
@@ -19,36 +17,11 @@ from .errors import ConfigError, ParameterError, RoryError
 setproctitle.getproctitle()
 
 
-# ROS arguments that name a file: relative to where `rory supervise` runs, as the supervisor
-# reads them, not to the config's folder, where its nodes run.
-_FILE_ARGUMENTS = frozenset({'--params-file', '--log-config-file'})
-
-
-def absolute_file_arguments(ros_args: Sequence[str]) -> tuple[str, ...]:
-    """``ros_args`` with the file after each of :data:`_FILE_ARGUMENTS` made absolute."""
-    out = list(ros_args)
-    for i, arg in enumerate(out[:-1]):
-        if arg in _FILE_ARGUMENTS:
-            out[i + 1] = os.path.abspath(out[i + 1])
-    return tuple(out)
-
-
 def _supervise(args: argparse.Namespace) -> int:
-    from .supervisor.config import check_commands, check_store, load_config
-    from .supervisor.supervisor import StartMode, Supervisor
+    from .supervisor.embed import supervise
 
-    config = load_config(args.config)
-    check_commands(config)
-    check_store(config)
-    ros_args = absolute_file_arguments(args.ros_args)
-    if ros_args:
-        # Passed through to every node, after its own arguments (a second --ros-args section
-        # is valid), as launch passes global arguments.
-        config = dataclasses.replace(config, nodes=tuple(
-            dataclasses.replace(node, command=(*node.command, '--ros-args', *ros_args))
-            for node in config.nodes))
-    start: StartMode = 'fresh' if args.fresh else 'resume' if args.resume else 'auto'
-    return Supervisor(config, start=start, ros_args=ros_args).run()
+    start = 'fresh' if args.fresh else 'resume' if args.resume else 'auto'
+    return supervise(args.config, ros_args=args.ros_args, start=start)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -183,8 +183,21 @@ def load_config(path: Path | str) -> SupervisorConfig:
         raise ConfigError(path, '(file)', f'not valid YAML: {problem or err}', at=at) from None
     except yaml.YAMLError as err:
         raise ConfigError(path, '(file)', f'not valid YAML: {err}') from None
+    return parse_config(doc, path, path.parent)
+
+
+def parse_config(doc: Any, path: Path, folder: Path) -> SupervisorConfig:
+    """Validate a configuration already read (a YAML document, or a program's own mapping).
+
+    Args:
+        doc: The document: a mapping with ``nodes`` and the optional top-level keys.
+        path: Names it in errors (the file, or a label for a mapping).
+        folder: Where nodes run and relative paths (``store``, scripts) resolve.
+
+    Raises:
+        ConfigError: A field is invalid.
+    """
     top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds', 'keep_runs'})
-    folder = path.parent
 
     nodes_raw = top.required('nodes')
     if not isinstance(nodes_raw, list) or not nodes_raw:

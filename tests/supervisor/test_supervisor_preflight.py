@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from rory_runtime.cli import absolute_file_arguments
 from rory_runtime.errors import ConfigError
 from rory_runtime.supervisor.config import check_commands, check_store, load_config
+from rory_runtime.supervisor.embed import absolute_file_arguments
 
 
 def _config(tmp_path: Path, text: str) -> Path:

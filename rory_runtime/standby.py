@@ -1,5 +1,6 @@
 """Becoming a node: what a process forked from the supervisor's zygote does to run a node's
-program as ``python node.py`` or ``python -m package.node`` would have.
+program as ``python node.py``, ``python -m package.node`` or its console script (an installed
+package's entry point, ``pkg_node = package.node:main``) would have.
 
 The zygote (``supervisor/zygote.py``) imports, before it forks anything, what every node's
 program imports from outside its own folder (:func:`warm_imports`: rclpy, numpy, message
@@ -26,11 +27,13 @@ from __future__ import annotations
 import ast
 import contextlib
 import importlib
+import importlib.metadata
 import importlib.util
 import json
 import logging
 import os
 import runpy
+import shutil
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -52,11 +55,14 @@ class StandbyError(Exception):
 
 @dataclass(frozen=True)
 class Program:
-    """What the standby will run: a script path or a module, and its arguments."""
+    """What the standby will run: a script path, a module, or a module's function that a
+    console script calls (``entry``, with the script's path as ``argv0``); and its arguments."""
 
     script: Path | None
     module: str | None
     args: tuple[str, ...]
+    entry: str | None = None  # the function (dotted within the module) a console script calls
+    argv0: str | None = None  # the console script's path: sys.argv[0] as the node sees it
 
     @classmethod
     def parse(cls, argv: Sequence[str]) -> Program:
@@ -72,9 +78,35 @@ class Program:
             return cls(Path(argv[0]), None, tuple(argv[1:]))
         raise StandbyError(f'not a script or -m module: {argv!r}')
 
+    @classmethod
+    def console_script(cls, argv: Sequence[str]) -> Program | None:
+        """``script args...`` when ``script`` is a console script that runs with this
+        interpreter (its ``#!`` line names it), resolved through ``importlib.metadata`` to the
+        module and function it calls; else None."""
+        if not argv or argv[0].startswith('-'):
+            return None
+        found = shutil.which(argv[0])
+        if found is None:
+            return None
+        try:
+            with open(found, 'rb') as script:
+                shebang = script.readline(4096)
+        except OSError:
+            return None
+        if shebang.strip() != f'#!{sys.executable}'.encode():
+            return None
+        name = Path(found).name
+        entries = importlib.metadata.entry_points(group='console_scripts', name=name)
+        entry = next(iter(entries), None)
+        if entry is None or not entry.attr:
+            return None
+        return cls(None, entry.module, tuple(argv[1:]), entry=entry.attr, argv0=found)
+
     @property
     def argv(self) -> list[str]:
         """sys.argv as the program will see it (for -m, runpy puts the module's path first)."""
+        if self.entry is not None:
+            return [str(self.argv0), *self.args]
         head = str(self.script) if self.script is not None else str(self.module)
         return [head, *self.args]
 
@@ -334,8 +366,15 @@ def drop_placeholder_after_first_node(node_class: Any, placeholder: Any) -> None
 
 
 def run_program(program: Program) -> None:
-    """Run it as ``python`` would have."""
-    if program.script is not None:
+    """Run it as ``python`` (or its console script) would have."""
+    if program.entry is not None:
+        sys.argv = program.argv
+        sys.path[0] = str(Path(str(program.argv0)).parent)  # a script's folder comes first
+        target: Any = importlib.import_module(str(program.module))
+        for part in program.entry.split('.'):
+            target = getattr(target, part)
+        sys.exit(target())  # as the console script's wrapper does
+    elif program.script is not None:
         sys.argv = program.argv
         sys.path[0] = str(program.home())
         runpy.run_path(str(program.script), run_name='__main__')

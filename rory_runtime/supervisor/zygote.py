@@ -117,11 +117,14 @@ def init_signature(program: Program, env: Mapping[str, str]) -> tuple[Any, ...]:
 
 def forkable(argv: Sequence[str]) -> Program | None:
     """The Python program a node command runs, if the zygote can fork it: ``python FILE ...``
-    or ``python -m MODULE ...`` with this interpreter (no interpreter options)."""
-    if len(argv) < 2:
+    or ``python -m MODULE ...`` with this interpreter (no interpreter options), or a console
+    script of this interpreter's packages (``Program.console_script``)."""
+    if not argv:
         return None
     head = argv[0]
     if head != sys.executable and Path(head).name not in ('python', 'python3', 'python3.11'):
+        return Program.console_script(argv)
+    if len(argv) < 2:
         return None
     try:
         return Program.parse(argv[1:])
@@ -327,7 +330,10 @@ def title(text: str) -> None:
 def _become_node(request: dict[str, Any]) -> int:
     title(shlex.join(request['argv']))
     _enter(request['env'], request['cwd'])
-    _run(Program.parse(request['argv'][1:]))
+    program = forkable(request['argv'])
+    if program is None:
+        raise StandbyError(f'cannot run {request["argv"]!r} in a fork')
+    _run(program)
     return 0
 
 
@@ -353,7 +359,9 @@ def _become_standby(request: dict[str, Any], control: int, ready: int) -> int:
         placeholder.destroy_node()
         rclpy.shutdown()
         return 0
-    program = Program.parse(list(activation.argv[1:]))
+    program = forkable(list(activation.argv))
+    if program is None:
+        raise StandbyError(f'cannot become {activation.argv!r}')
     title(shlex.join(activation.argv))
     _enter(activation.env, activation.cwd)
     absorb_init(rclpy, [program.argv[0], *init_args[1:]], same=_same_init)

@@ -17,7 +17,7 @@ from rosbags.rosbag2 import Reader
 from supervision import events as read_events
 from supervision import wait_for
 
-from rory_eval.scenario import EXAMPLE, Kill, prepare, run, scenario_env
+from rory_eval.scenario import EXAMPLE, Kill, Program, prepare, run, scenario_env
 from rory_runtime import protocol
 from rory_runtime.codec import decode_vars
 from rory_runtime.store import CheckpointStore
@@ -253,3 +253,32 @@ def test_a_clean_stop_leaves_a_checkpoint_of_the_state_at_the_stop(
     assert latest is not None
     values = decode_vars(latest.vars_blob)
     assert (values['count'], values['total']) == (40, 40 * 41 // 2)
+
+
+def test_a_node_installed_as_a_console_script_is_recovered_by_the_warm_standby(
+    tmp_path: Path, ros_domain: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The instrumented integrator installed as pip installs a package's entry point:
+    # `integrator_node = integrator:main`, the script on PATH, the module on PYTHONPATH.
+    prepare(tmp_path, 'rory', interval=2.0, pace=None)
+    site, bin_dir = tmp_path / 'site', tmp_path / 'bin'
+    info = site / 'integrator_node-1.0.dist-info'
+    info.mkdir(parents=True)
+    (info / 'METADATA').write_text('Metadata-Version: 2.1\nName: integrator-node\nVersion: 1.0\n')
+    (info / 'entry_points.txt').write_text(
+        '[console_scripts]\nintegrator_node = integrator:main\n')
+    bin_dir.mkdir()
+    script = bin_dir / 'integrator_node'
+    script.write_text(f'#!{sys.executable}\nimport sys\nfrom integrator import main\n'
+                      'sys.exit(main())\n')
+    script.chmod(0o755)
+    monkeypatch.setenv('PYTHONPATH', os.pathsep.join(
+        [str(tmp_path / 'out'), str(site), *filter(None, [os.environ.get('PYTHONPATH')])]))
+    monkeypatch.setenv('PATH', f'{bin_dir}{os.pathsep}{os.environ["PATH"]}')
+    program = Program(EXAMPLE, EXAMPLE / 'keyvars.yaml', 'integrator.py', '/integrator/state',
+                      'integrator', settings=(('command', ['integrator_node']),))
+    result = run('rory', (Kill(after=3.0),), tmp_path, domain_id=ros_domain, count=300,
+                 interval=2.0, pace='fast', program=program)
+    assert result.correct, result
+    spawns = [e for e in read_events(tmp_path / 'store-rory') if e['kind'] == 'spawn']
+    assert [s['warm'] for s in spawns[:2]] == [False, True], spawns  # the recovery: warm

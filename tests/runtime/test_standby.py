@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -148,3 +149,71 @@ def test_any_other_init_starts_cold(call: SimpleNamespace) -> None:
     absorb_init(fake, ['node.py'])
     fake.init(*call.args, **call.kwargs)
     assert fake.calls == [('shutdown',), ('init', call.args, call.kwargs)]
+
+
+# -- console scripts (an installed package's entry point) -----------------------------------
+
+
+def _installed(tmp_path: Path, *, shebang: str = sys.executable) -> dict[str, str]:
+    """A package `talker_pkg` with a console script `talker_node = talker_pkg.node:main`, as
+    pip installs it: the module, its dist-info, and the script on PATH. The environment to
+    run with."""
+    site, bin_dir = tmp_path / 'site', tmp_path / 'bin'
+    (site / 'talker_pkg').mkdir(parents=True)
+    (site / 'talker_pkg' / '__init__.py').write_text('')
+    (site / 'talker_pkg' / 'node.py').write_text(
+        'import sys\n\ndef main():\n    print("talking", sys.argv[1:])\n    return 3\n')
+    info = site / 'talker_pkg-1.0.dist-info'
+    info.mkdir()
+    (info / 'METADATA').write_text('Metadata-Version: 2.1\nName: talker-pkg\nVersion: 1.0\n')
+    (info / 'entry_points.txt').write_text(
+        '[console_scripts]\ntalker_node = talker_pkg.node:main\n')
+    bin_dir.mkdir()
+    script = bin_dir / 'talker_node'
+    script.write_text(f'#!{shebang}\nimport sys\nfrom talker_pkg.node import main\n'
+                      'sys.exit(main())\n')
+    script.chmod(0o755)
+    return {**os.environ, 'PYTHONPATH': str(site),
+            'PATH': f'{bin_dir}{os.pathsep}{os.environ["PATH"]}'}
+
+
+_RUN_FORKED = '''
+import sys
+from rory_runtime.standby import run_program
+from rory_runtime.supervisor.zygote import forkable
+program = forkable(sys.argv[1:])
+print(program.module, program.entry, program.args, flush=True)
+run_program(program)
+'''
+
+
+def test_a_console_script_runs_in_a_fork_as_its_wrapper_would(tmp_path: Path) -> None:
+    env = _installed(tmp_path)
+    done = subprocess.run([sys.executable, '-c', _RUN_FORKED, 'talker_node', 'a', '--ros-args'],
+                          env=env, capture_output=True, text=True, timeout=60, check=False)
+    assert done.stdout.splitlines() == [
+        "talker_pkg.node main ('a', '--ros-args')", "talking ['a', '--ros-args']"], done.stderr
+    assert done.returncode == 3  # what main returned, as sys.exit(main()) gives
+
+
+def test_a_console_script_of_another_interpreter_is_not_forked(tmp_path: Path) -> None:
+    env = _installed(tmp_path, shebang='/usr/bin/python3')
+    done = subprocess.run(
+        [sys.executable, '-c', 'import sys\nfrom rory_runtime.supervisor.zygote import forkable\n'
+         'print(forkable(sys.argv[1:]))', 'talker_node'],
+        env=env, capture_output=True, text=True, timeout=60, check=False)
+    assert done.stdout.strip() == 'None', done.stderr
+
+
+def test_this_installations_own_console_script_resolves_to_its_function(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rory_runtime.supervisor.zygote import forkable
+
+    monkeypatch.setenv('PATH', f'{Path(sys.executable).parent}{os.pathsep}{os.environ["PATH"]}')
+    program = forkable(['rory-instrument', '--help'])
+    assert program is not None
+    assert (program.module, program.entry, program.args) == ('rory_instrument.cli', 'main',
+                                                              ('--help',))
+    assert program.argv == [str(Path(sys.executable).parent / 'rory-instrument'), '--help']
+    assert forkable(['no-such-program-here']) is None

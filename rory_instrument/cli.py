@@ -21,6 +21,7 @@ from rory_instrument.checks import ModuleFacts, collect_module
 from rory_instrument.config import KeyVars, NodeSpec, load_keyvars
 from rory_instrument.errors import InstrumentError, PathError
 from rory_instrument.manifest import MANIFEST_NAME, ManifestEntry, render_manifest
+from rory_instrument.packaging import DISTRIBUTION, declare_runtime
 from rory_instrument.transform import instrument_source, parse_source
 
 EXIT_OK = 0
@@ -175,8 +176,14 @@ def _write_file(path: Path, data: bytes) -> None:
     path.chmod(mode)
 
 
-def _write_tree(src: Path, out: Path, files: dict[str, bytes], manifest: str) -> None:
-    """Builds OUT next to itself and renames it into place, replacing a previous OUT."""
+def _write_tree(src: Path, out: Path, files: dict[str, bytes],
+                manifest: str) -> tuple[list[str], list[str]]:
+    """Builds OUT next to itself and renames it into place, replacing a previous OUT.
+
+    Returns:
+        The package files that now declare RORY's runtime, and warnings about those left
+        alone (``rory_instrument.packaging``).
+    """
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f'.{out.name}.rory-', dir=out.parent))
     try:
@@ -184,6 +191,7 @@ def _write_tree(src: Path, out: Path, files: dict[str, bytes], manifest: str) ->
         shutil.copytree(src, tree, symlinks=True, ignore=_ignore_manifest(src))
         for rel, code in files.items():
             _write_file(tree / rel, code)
+        declared = declare_runtime(tree)
         (tree / MANIFEST_NAME).write_text(manifest, encoding='utf-8')
         old = staging / 'old'
         if out.exists():
@@ -196,11 +204,13 @@ def _write_tree(src: Path, out: Path, files: dict[str, bytes], manifest: str) ->
             raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+    return declared
 
 
 def instrument_tree(
     src: str, keyvars_path: str, out: str | None, *, check: bool = False,
     warn: Callable[[str], None] | None = None,
+    inform: Callable[[str], None] | None = None,
 ) -> list[ManifestEntry]:
     """Validates keyvars.yaml against SRC and, unless checking, writes OUT.
 
@@ -210,6 +220,7 @@ def instrument_tree(
         out: The output directory, or None to validate only.
         check: Validate only; write nothing even if ``out`` is given.
         warn: Gets each warning line (``file:line:col: warning: ...``).
+        inform: Gets a line naming the package files that now declare RORY's runtime.
 
     Returns:
         One entry per instrumented node, in keyvars.yaml order.
@@ -251,9 +262,14 @@ def instrument_tree(
 
     if out_dir is not None and not check:
         try:
-            _write_tree(src_dir, out_dir, files, render_manifest(ordered))
+            declared, warnings = _write_tree(src_dir, out_dir, files, render_manifest(ordered))
         except OSError as e:
             raise PathError(str(out), 0, 0, f'cannot write OUT: {e.strerror or e}') from e
+        if declared and inform is not None:
+            inform(f'declared {DISTRIBUTION} in {", ".join(declared)}')
+        for line in warnings:
+            if warn is not None:
+                warn(f'{out_dir / line}'.replace(': ', ': warning: ', 1))
     return ordered
 
 
@@ -301,7 +317,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error('the following arguments are required: -o/--out')
     try:
         entries = instrument_tree(args.src, args.vars, args.out, check=args.check,
-                                  warn=lambda line: print(line, file=sys.stderr))
+                                  warn=lambda line: print(line, file=sys.stderr),
+                                  inform=print)
     except InstrumentError as e:
         print(e, file=sys.stderr)
         return EXIT_INPUT_ERROR

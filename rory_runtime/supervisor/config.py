@@ -25,6 +25,7 @@ Every error names the file and the field (``nodes[0].method``).
 
 from __future__ import annotations
 
+import importlib.metadata
 import math
 import os
 import re
@@ -334,10 +335,29 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
 
 def _resolve_command(command: list[str]) -> tuple[str, ...]:
     # 'python' means the interpreter running the supervisor: it has rclpy and rory_runtime.
+    # `[package, executable]`, as `ros2 run` takes them, is the package's console script.
     # Everything else is left as written; the node runs with the config file's folder as its
     # working directory, so relative paths resolve against that folder.
-    first = sys.executable if command[0] in _PYTHON_NAMES else command[0]
-    return (first, *command[1:])
+    if command[0] in _PYTHON_NAMES:
+        return (sys.executable, *command[1:])
+    if len(command) >= 2 and shutil.which(command[0]) is None:
+        script = package_executable(command[0], command[1])
+        if script is not None:
+            return (script, *command[2:])
+    return tuple(command)
+
+
+def package_executable(package: str, executable: str) -> str | None:
+    """The console script ``executable`` of the installed distribution ``package`` (as
+    ``ros2 run package executable`` finds it), if this interpreter has it on PATH."""
+    try:
+        dist = importlib.metadata.distribution(package)
+    except (importlib.metadata.PackageNotFoundError, ValueError):
+        return None
+    if not any(ep.name == executable for ep in dist.entry_points
+               if ep.group == 'console_scripts'):
+        return None
+    return shutil.which(executable)
 
 
 def _backoff(path: Path, where: str, obj: Any) -> Backoff:

@@ -4,6 +4,7 @@ line and column), relative file arguments; `rory --version`. Each is one line an
 
 from __future__ import annotations
 
+import os
 import stat
 import subprocess
 import sys
@@ -146,3 +147,20 @@ def test_version(tmp_path: Path) -> None:
     done = _rory('--version', cwd=tmp_path)
     assert done.returncode == 0
     assert done.stdout.startswith('rory ') and done.stdout.strip() != 'rory'
+
+
+def test_a_package_and_its_executable_name_the_console_script(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # As `ros2 run rory-ros2 rory-instrument`: this installation's own distribution.
+    monkeypatch.setenv('PATH', f'{Path(sys.executable).parent}{os.pathsep}{os.environ["PATH"]}')
+    config = load_config(_config(tmp_path, '''
+        nodes:
+          - {name: a, command: [rory-ros2, rory-instrument, --help]}
+          - {name: b, command: [rory-ros2, not-a-script]}
+    '''))
+    assert config.nodes[0].command == (str(Path(sys.executable).parent / 'rory-instrument'),
+                                       '--help')
+    assert config.nodes[1].command == ('rory-ros2', 'not-a-script')  # left for the check
+    with pytest.raises(ConfigError, match='rory-ros2 is not on PATH'):
+        check_commands(config)

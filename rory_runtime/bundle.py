@@ -3,13 +3,15 @@
     rory bundle STORE --node N -o crash.tar [--config supervise.yaml]
     rory reproduce crash.tar [-C DIR] [--timeout 60]
 
-A bundle is a tar file holding what the node would recover from: its newest valid checkpoint,
-every log segment after that checkpoint's cut (the node's own and the supervisor's recovery
-logs), and the crash report (the node's events, with its exits, the messages it died on and
-any quarantined message). With ``--config`` it also holds the node's instrumented program (the
-folder of the script its command runs) and its command, so that ``rory reproduce`` needs
-nothing else. Quarantined messages are kept apart (``quarantine/``): in the bundle's store they
-would be skipped, and the point is to apply them again.
+A bundle is a tar file holding what the node would recover from: the newest valid checkpoint
+from which a replay reaches the message the node last died on (its newest one; an older one
+kept; or, once later checkpoints have gone past a poison message, the copy the supervisor kept
+when it quarantined it), every log segment after that checkpoint's cut (the node's own and the
+supervisor's recovery logs), and the crash report (the node's events, with its exits, the
+messages it died on and any quarantined message). With ``--config`` it also holds the node's
+instrumented program (the folder of the script its command runs) and its command, so that
+``rory reproduce`` needs nothing else. Quarantined messages are kept apart (``quarantine/``): in the
+bundle's store they would be skipped, and the point is to apply them again.
 
 ``rory reproduce`` extracts the bundle and runs the node under ``rory supervise --resume`` on
 the bundle's store, in a ROS domain of its own: the node restores the checkpoint, the
@@ -37,9 +39,10 @@ from typing import Any
 
 import yaml
 
-from .errors import CheckpointError, ConfigError, RoryError
-from .log import SegmentStore
-from .store import CheckpointStore
+from .errors import CheckpointError, ConfigError, LogError, RoryError
+from .log import SegmentStore, read_segment
+from .store import Checkpoint, CheckpointStore
+from .supervisor.poison import EVIDENCE_SUFFIX
 
 FORMAT = 1
 MANIFEST = 'bundle.json'
@@ -102,21 +105,20 @@ def make_bundle(store: Path, node: str, out: Path, config: Path | None = None) -
     """
     if not (store / node).is_dir():
         raise BundleError(f'{store}: no node {node!r} in this store')
-    checkpoints = CheckpointStore(store, node)
+    events = _events_of(store, node)
     refused: list[str] = []
-    ckpt = checkpoints.latest_valid(on_refused=lambda err: refused.append(str(err)))
-    if ckpt is None:
+    source = _source(store, node, _last_death(events), refused)
+    if source is None:
         raise BundleError(f'{store}/{node}: no valid checkpoint to start from'
                           + (f' ({"; ".join(refused)})' if refused else ''))
-    segments = SegmentStore(store, node)
-    after = [n for n in segments.numbers() if ckpt.cut is None or n > ckpt.cut]
-    events = _events_of(store, node)
+    ckpt_path, ckpt, segment_paths, note = source
+    after = sorted(segment_paths)
     manifest: dict[str, Any] = {
         'format': FORMAT, 'node': node, 'made': time.time(), 'store': str(store.resolve()),
         'checkpoint': {'seq': ckpt.seq, 'cut': ckpt.cut, 'manifest': ckpt.manifest,
                        'created_ns': ckpt.created_ns},
         'segments': after, 'refused_checkpoints': refused,
-        'command': None, 'program': None,
+        'command': None, 'program': None, 'note': note,
     }
     program = None
     if config is not None:
@@ -128,12 +130,14 @@ def make_bundle(store: Path, node: str, out: Path, config: Path | None = None) -
                                else a for a in command[1:]]
     out.parent.mkdir(parents=True, exist_ok=True)
     with tarfile.open(out, 'w') as tar:
-        tar.add(checkpoints.path(ckpt.seq), f'store/{node}/checkpoints/{ckpt.seq:010d}.ckpt')
+        tar.add(ckpt_path, f'store/{node}/checkpoints/{ckpt.seq:010d}.ckpt')
         for n in after:
-            tar.add(segments.path(n), f'store/{node}/log/{n:010d}')
+            tar.add(segment_paths[n], f'store/{node}/log/{n:010d}')
         quarantine = store / node / 'quarantine'
         if quarantine.is_dir():
-            tar.add(quarantine, 'quarantine')
+            # The records; not the copies kept beside them (one of them may be in store/).
+            tar.add(quarantine, 'quarantine', filter=lambda info: None if any(
+                part.endswith(EVIDENCE_SUFFIX) for part in Path(info.name).parts) else info)
         if program is not None:
             tar.add(program, 'code', filter=lambda info: None if '__pycache__' in info.name
                     else info)
@@ -145,6 +149,89 @@ def make_bundle(store: Path, node: str, out: Path, config: Path | None = None) -
             info.size, info.mtime, info.mode = len(data), int(time.time()), 0o600
             tar.addfile(info, io.BytesIO(data))
     return manifest
+
+
+Death = tuple[str, tuple[int, int]]  # (topic, (source_ns, seq)) of the message it died on
+Source = tuple[Path, Checkpoint, dict[int, Path], str | None]
+
+
+def _last_death(events: list[dict[str, Any]]) -> Death | None:
+    """The message the node was applying when it last died, if the events say."""
+    for event in reversed(events):
+        if event.get('kind') in ('died_on', 'quarantined'):
+            try:
+                return str(event['topic']), (int(event['source_ns']), int(event['seq']))
+            except (KeyError, TypeError, ValueError):
+                return None
+    return None
+
+
+def _holds(segments: dict[int, Path], death: Death) -> bool:
+    topic, ident = death
+    for path in segments.values():
+        try:
+            if any(e.topic == topic and e.ident == ident for e in read_segment(path)):
+                return True
+        except LogError:
+            continue
+    return False
+
+
+def _store_sources(store: Path, node: str, refused: list[str]) -> list[Source]:
+    """The store's valid checkpoints, newest first, each with the segments after its cut."""
+    checkpoints = CheckpointStore(store, node)
+    segments = SegmentStore(store, node)
+    found: list[Source] = []
+    try:
+        paths = checkpoints.paths()
+    except CheckpointError as err:
+        refused.append(str(err))
+        return found
+    for path in paths:
+        try:
+            ckpt = checkpoints.load(path)
+        except CheckpointError as err:
+            refused.append(str(err))
+            continue
+        after = {n: segments.path(n) for n in segments.numbers()
+                 if ckpt.cut is None or n > ckpt.cut}
+        found.append((path, ckpt, after, None))
+    return found
+
+
+def _evidence_sources(store: Path, node: str, death: Death) -> list[Source]:
+    """What the supervisor kept beside the quarantine record of the message it died on."""
+    found: list[Source] = []
+    for folder in sorted((store / node / 'quarantine').glob(f'*{EVIDENCE_SUFFIX}')):
+        ckpts = sorted((folder / 'checkpoints').glob('*.ckpt'))
+        if not ckpts:
+            continue
+        try:
+            ckpt = CheckpointStore(store, node).load(ckpts[-1])
+        except CheckpointError:
+            continue
+        after = {int(p.name): p for p in (folder / 'log').glob('*') if p.name.isdigit()}
+        if _holds(after, death):
+            found.append((ckpts[-1], ckpt, after, None))
+    return found
+
+
+def _source(store: Path, node: str, death: Death | None, refused: list[str]) -> Source | None:
+    """The checkpoint and segments to bundle: the newest from which a replay reaches the
+    message the node last died on (the store's, else the copy kept at its quarantine)."""
+    candidates = _store_sources(store, node, refused)
+    if death is None:
+        return candidates[0] if candidates else None
+    for candidate in candidates:
+        if _holds(candidate[2], death):
+            return candidate
+    for candidate in _evidence_sources(store, node, death):
+        return candidate
+    if not candidates:
+        return None
+    path, ckpt, after, _ = candidates[0]
+    return path, ckpt, after, (f'the checkpoints kept are past the message {node} died on '
+                               f'({death[0]}, seq {death[1][1]}): a replay will not reach it')
 
 
 def _extract(bundle: Path, into: Path) -> dict[str, Any]:
@@ -266,6 +353,8 @@ def bundle_main(argv: Sequence[str]) -> int:
     print(f'rory bundle: {args.out}: checkpoint {manifest["checkpoint"]["seq"]}, '
           f'{len(manifest["segments"])} segment(s), '
           f'{"with" if manifest["command"] else "without"} the program')
+    if manifest['note']:
+        print(f'rory bundle: warning: {manifest["note"]}', file=sys.stderr)
     return 0
 
 

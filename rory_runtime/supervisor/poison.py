@@ -16,6 +16,7 @@ import base64
 import json
 import logging
 import re
+import shutil
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -26,11 +27,16 @@ from ..fsutil import make_private_dir
 from ..inflight import InFlight, read_slot, slot_path
 from ..log import LogEntry, SegmentStore
 from ..protocol import MessageId
+from ..store import CheckpointStore
 from .states import LOG_PREFIX
 
 _logger = logging.getLogger('rory.supervisor')
 
 Key = tuple[str, MessageId]
+
+# Next to each quarantine record, a folder with the checkpoint the node restored from when it
+# died on the message twice, and the log segments after its cut (rory bundle takes them).
+EVIDENCE_SUFFIX = '.before'
 
 
 @dataclass(frozen=True)
@@ -47,6 +53,7 @@ class PoisonGuard:
 
     def __init__(self, store: Path, node_id: str, segments: SegmentStore) -> None:
         self.node_id = node_id
+        self._store = store
         self.dir = store / node_id / 'quarantine'
         self._slot = slot_path(store, node_id)
         self._segments = segments
@@ -111,6 +118,7 @@ class PoisonGuard:
         tmp.write_text(json.dumps(record, indent=2) + '\n')
         tmp.chmod(0o600)
         tmp.replace(path)
+        self._keep_evidence(path.with_suffix(EVIDENCE_SUFFIX))
         key = (inflight.topic, inflight.ident)
         self.keys.add(key)
         _logger.error(
@@ -119,6 +127,24 @@ class PoisonGuard:
             inflight.topic, inflight.ident[0], inflight.ident[1], path,
         )
         return Quarantined(inflight.topic, inflight.ident, path)
+
+    def _keep_evidence(self, folder: Path) -> None:
+        """Copy what the node restores from now (the checkpoint before the message: the node
+        never got past it) and the segments after its cut, so that `rory bundle` can take
+        the crash home after later checkpoints have gone past the message."""
+        checkpoints = CheckpointStore(self._store, self.node_id)
+        ckpt = checkpoints.latest_valid()
+        if ckpt is None:
+            return
+        try:
+            make_private_dir(folder / 'checkpoints')
+            shutil.copy2(checkpoints.path(ckpt.seq), folder / 'checkpoints')
+            for n in self._segments.numbers():
+                if ckpt.cut is None or n > ckpt.cut:
+                    shutil.copytree(self._segments.path(n), folder / 'log' / f'{n:010d}')
+        except OSError as err:
+            _logger.warning('%s %s: could not keep the checkpoint before the poison message in '
+                            '%s: %s', LOG_PREFIX, self.node_id, folder, err)
 
     def _find(self, inflight: InFlight, recent: Iterable[LogEntry]) -> LogEntry | None:
         # The node logs a message before applying it, so it is in its log or in R.

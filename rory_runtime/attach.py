@@ -97,6 +97,7 @@ from .threads import name_this_thread
 _logger = logging.getLogger('rory.runtime')
 
 N = TypeVar('N', bound=type[Node])
+T = TypeVar('T')
 
 DEFAULT_INTERVAL = 2.0
 BEAT_PERIOD = 0.2  # seconds between heartbeats (the supervisor's hang_timeout is far longer)
@@ -579,24 +580,13 @@ class NodeRuntime:
         def locked_tick() -> Any:
             if not self.released:
                 return None
-            with self.lock:
-                clock = self.clock
-                if clock is not None:
-                    # Write-ahead, like a message: the tick is in the log before it has any
-                    # effect.
-                    self._write_record(protocol.TIMER_RECORD, time.time_ns(),
-                                       int(event_clock.original_now(timer.clock).nanoseconds),
-                                       index)
-                    self.stats['ticks'] += 1
-                    clock.begin_live()
-                try:
-                    return callback()
-                except BaseException:
-                    self._callback_failed = True
-                    raise
-                finally:
-                    if clock is not None:
-                        clock.end()
+
+            def record() -> None:
+                self._write_record(protocol.TIMER_RECORD, time.time_ns(),
+                                   int(event_clock.original_now(timer.clock).nanoseconds), index)
+                self.stats['ticks'] += 1
+
+            return self._live_event(record, callback)
 
         timer.callback = locked_tick
         timer._rory = True  # type: ignore[attr-defined]
@@ -617,22 +607,13 @@ class NodeRuntime:
                                                             lambda: self.released)
 
         def logged_request(request: Any, response: Any) -> Any:
-            with self.lock:
-                clock = self.clock
-                if clock is not None:
-                    self._write_record(protocol.REQUEST_RECORD, time.time_ns(), 0, index,
-                                       node_services.pack_request(request),
-                                       node_services.RECORD_TYPE)
-                    self.stats['requests'] += 1
-                    clock.begin_live()
-                try:
-                    return callback(request, response)
-                except BaseException:
-                    self._callback_failed = True
-                    raise
-                finally:
-                    if clock is not None:
-                        clock.end()
+            def record() -> None:
+                self._write_record(protocol.REQUEST_RECORD, time.time_ns(), 0, index,
+                                   node_services.pack_request(request),
+                                   node_services.RECORD_TYPE)
+                self.stats['requests'] += 1
+
+            return self._live_event(record, lambda: callback(request, response))
 
         srv.callback = logged_request
 
@@ -705,22 +686,44 @@ class NodeRuntime:
             return SetParametersResult(
                 successful=False, reason='[rory] the node is recovering (or not yet released); '
                 'set it again once it is back')
+
+        def record() -> None:
+            self._write_record(protocol.PARAMETERS_RECORD, time.time_ns(), 0, 0,
+                               node_parameters.pack(parameter_list), node_parameters.RECORD_TYPE)
+            self.stats['parameter_changes'] += 1
+
+        return self._live_event(record, lambda: original(parameter_list))
+
+    def _live_event(self, record: Callable[[], None], run: Callable[[], T]) -> T:
+        """Run a user callback (a tick, a request, a parameter change) as a live event: under
+        the lock; where messages are logged, its record written first (write-ahead) and its
+        clock readings logged; a raise remembered (no checkpoint at exit after it)."""
         with self.lock:
             clock = self.clock
             if clock is not None:
-                data = node_parameters.pack(parameter_list)
-                self._write_record(protocol.PARAMETERS_RECORD, time.time_ns(), 0, 0, data,
-                                   node_parameters.RECORD_TYPE)
-                self.stats['parameter_changes'] += 1
+                record()
                 clock.begin_live()
             try:
-                return original(parameter_list)
+                return run()
             except BaseException:
                 self._callback_failed = True
                 raise
             finally:
                 if clock is not None:
                     clock.end()
+
+    def _replayed_event(self, event_ns: int, readings: list[Reading],
+                        run: Callable[[], T]) -> T:
+        """Run a logged tick, request or parameter change again, under the lock, its clocks
+        reading what they read live."""
+        clock = self.clock
+        assert clock is not None  # these are logged only where clocks are
+        with self.lock:
+            clock.begin_replay(event_ns, readings)
+            try:
+                return run()
+            finally:
+                clock.end()
 
     def _replay_request(self, index: int, data: bytes, event_ns: int,
                         readings: list[Reading]) -> None:
@@ -737,30 +740,21 @@ class NodeRuntime:
         except ValueError as err:
             self._error(f'a logged request to {srv.srv_name} is unreadable: {err}')
             return
-        clock = self.clock
-        assert clock is not None  # requests are logged only where clocks are
-        with self.lock:
-            clock.begin_replay(event_ns, readings)
-            try:
-                callback(request, srv_type.Response())
-            finally:
-                clock.end()
-            self.stats['requests_replayed'] += 1
+        self._replayed_event(event_ns, readings,
+                             lambda: callback(request, srv_type.Response()))
+        self.stats['requests_replayed'] += 1
 
     def _replay_parameters(self, data: bytes, event_ns: int, readings: list[Reading]) -> None:
         """A logged parameter change, applied again with the node's parameter callbacks."""
-        original, clock = self._set_parameters_atomically, self.clock
-        assert original is not None and clock is not None
-        with self.lock:
-            clock.begin_replay(event_ns, readings)
-            try:
-                result = original(node_parameters.unpack(data))
-            except (ParameterException, ValueError) as err:
-                self._error(f'a logged parameter change failed again in replay: {err}')
-                return
-            finally:
-                clock.end()
-            self.stats['parameter_changes_replayed'] += 1
+        original = self._set_parameters_atomically
+        assert original is not None
+        try:
+            result = self._replayed_event(
+                event_ns, readings, lambda: original(node_parameters.unpack(data)))
+        except (ParameterException, ValueError) as err:
+            self._error(f'a logged parameter change failed again in replay: {err}')
+            return
+        self.stats['parameter_changes_replayed'] += 1
         if not result.successful:
             self._error(f'a logged parameter change was refused in replay: {result.reason}')
 
@@ -944,16 +938,8 @@ class NodeRuntime:
             self._error(f'the log has a tick of timer {index}, but the node made '
                         f'{len(self.timer_callbacks)} timer(s): tick skipped')
             return
-        callback = self.timer_callbacks[index]
-        clock = self.clock
-        assert clock is not None  # ticks are logged only where clocks are
-        with self.lock:
-            clock.begin_replay(event_ns, readings)
-            try:
-                callback()
-            finally:
-                clock.end()
-            self.stats['ticks_replayed'] += 1
+        self._replayed_event(event_ns, readings, self.timer_callbacks[index])
+        self.stats['ticks_replayed'] += 1
 
     # -- live messages ------------------------------------------------------------------------
 

@@ -40,6 +40,18 @@ def _wait(what: str, ok: Callable[[], bool], timeout: float, log: Path,
         time.sleep(0.02)
 
 
+def _modes(store: Path) -> dict[Path, int]:
+    """The permission bits of everything in a store, skipping what goes while it is read (a
+    running node rotates and prunes its log)."""
+    modes: dict[Path, int] = {}
+    for path in [store, *store.rglob('*')]:
+        try:
+            modes[path.relative_to(store)] = stat.S_IMODE(path.stat().st_mode)
+        except FileNotFoundError:
+            continue
+    return modes
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -105,16 +117,16 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
             subprocess.run([*publisher, '50', '50', '2', '101'], env=env, check=True,
                            timeout=60)
             _wait('101..150 applied', lambda: history() == list(range(1, 151)), 15, log2)
+            # Checkpoints and logs hold the robot's state and all it heard: the owner's only.
+            # (Looked at while it runs: a clean stop checkpoints, and prunes the log before.)
+            modes = _modes(store)
+            wrong = {str(p): oct(m) for p, m in modes.items()
+                     if m != (0o700 if (store / p).is_dir() else 0o600)}
+            assert not wrong, wrong
+            assert any(p.suffix == '.mcap' for p in modes) and len(modes) > 10
             sup2.send_signal(signal.SIGINT)
             assert sup2.wait(timeout=30) == 0
         assert json.loads((store / 'supervisor.json').read_text())['clean'] is True
-        # Checkpoints and logs hold the robot's state and all it heard: the owner's only.
-        modes = {p.relative_to(store): stat.S_IMODE(p.stat().st_mode)
-                 for p in [store, *store.rglob('*')]}
-        wrong = {str(p): oct(m) for p, m in modes.items()
-                 if m != (0o700 if (store / p).is_dir() else 0o600)}
-        assert not wrong, wrong
-        assert any(p.suffix == '.mcap' for p in modes) and len(modes) > 10
 
         # After a clean stop the next run starts fresh and sets the old store aside.
         log3 = workdir / 'supervisor-3.log'

@@ -80,7 +80,9 @@ def current_process(store: Path, node: str) -> tuple[int, int]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``rory kill``; 0, or 2 with one line saying why nothing was signalled."""
-    parser = argparse.ArgumentParser(prog='rory kill', description=__doc__.split('\n\n')[0])
+    parser = argparse.ArgumentParser(
+        prog='rory kill', description="Signal one supervised node's current process (the one "
+        'the supervisor last started for it), and nothing else.')
     parser.add_argument('store', type=Path, help='the store folder (.rory by default)')
     parser.add_argument('node', help="the node's name in the supervisor config")
     parser.add_argument('--signal', default='KILL',

@@ -31,7 +31,6 @@ import os
 import re
 import shutil
 import sys
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,7 +39,6 @@ from typing import Any
 import yaml
 
 from ..errors import ConfigError
-from ..fsutil import make_private_dir
 from ..protocol import NODE_ID_RE, Method, ReplayPace
 
 _TYPE_RE = re.compile(r'[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*')
@@ -265,20 +263,25 @@ def check_commands(config: SupervisorConfig) -> None:
 
 
 def check_store(config: SupervisorConfig) -> None:
-    """Before anything starts: the store folder exists (made 0700 if missing) and takes files.
+    """Before the store is claimed: it is a folder this process can write, or can be made in
+    one. Nothing is created (a ROS parameter may still name another store).
 
     Raises:
         ConfigError: One line naming the store and why it cannot be used.
     """
     store = config.store
-    try:
-        make_private_dir(store)
-        with tempfile.TemporaryFile(dir=store):
-            pass
-    except OSError as err:
-        reason = err.strerror or str(err)
-        raise ConfigError(config.path, 'store', f'{store}: cannot create or write: {reason}'
-                          ) from None
+    probe = store
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise store_error(config, f'{probe} is not a folder')
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise store_error(config, f'{probe}: permission denied')
+
+
+def store_error(config: SupervisorConfig, reason: str) -> ConfigError:
+    """The one line saying the store cannot be used."""
+    return ConfigError(config.path, 'store', f'{config.store}: cannot create or write: {reason}')
 
 
 def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:

@@ -24,7 +24,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from .config import SupervisorConfig, check_commands, check_store, load_config, parse_config
+from .config import SupervisorConfig, check_commands, load_config, parse_config
 
 # ROS arguments that name a file: relative to where the supervisor is started, as the
 # supervisor reads them, not to the config's folder, where its nodes run.
@@ -72,8 +72,9 @@ def supervise(config: SupervisorConfig | Mapping[str, Any] | str | Path, *,
         The exit code of ``rory supervise``: 0 after a clean stop.
 
     Raises:
-        ConfigError: Anything :func:`~.config.check_commands` or
-            :func:`~.config.check_store` refuses, before anything starts.
+        ConfigError: Anything :func:`~.config.check_commands` refuses, before anything
+            starts; a store that cannot be used (:func:`~.config.check_store`, checked once
+            ROS parameters have had their say), before any node starts.
     """
     from .supervisor import Supervisor
 
@@ -81,7 +82,6 @@ def supervise(config: SupervisorConfig | Mapping[str, Any] | str | Path, *,
         raise ValueError(f"start must be 'auto', 'fresh' or 'resume', got {start!r}")
     parsed = resolve_config(config, folder)
     check_commands(parsed)
-    check_store(parsed)
     args = absolute_file_arguments(ros_args)
     if args:
         # Passed through to every node, after its own arguments (a second --ros-args section

@@ -43,7 +43,7 @@ from ..log import SegmentStore, default_typestore
 from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
 from ..store import CheckpointStore
 from ..threads import name_this_thread
-from .config import NodeConfig, SupervisorConfig
+from .config import NodeConfig, SupervisorConfig, check_store, store_error
 from .diagnostics import NodeHealth, Reporter, age
 from .lineage import InputGap
 from .parameters import NODE_NAME as SUPERVISOR_NODE
@@ -914,9 +914,17 @@ class Supervisor:
         return Ring(self._ring_ctx, node_id)
 
     def _claim_store(self) -> tuple[RunMarker, bool, float | None]:
-        """Lock the store; whether to resume, and since when the nodes were unsupervised."""
-        marker = RunMarker(self.config.store)
-        previous = marker.acquire()
+        """Lock the store; whether to resume, and since when the nodes were unsupervised.
+
+        Raises:
+            ConfigError: The store cannot be made or written (before any node starts).
+        """
+        check_store(self.config)
+        try:
+            marker = RunMarker(self.config.store)
+            previous = marker.acquire()
+        except OSError as err:
+            raise store_error(self.config, err.strerror or str(err)) from None
         unclean = previous is not None and not previous.clean
         resume = self.start_mode == 'resume' or (self.start_mode == 'auto' and unclean)
         down_since = None

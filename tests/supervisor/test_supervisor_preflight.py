@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from rory_eval.scenario import scenario_env
 from rory_runtime.errors import ConfigError
 from rory_runtime.supervisor.config import check_commands, check_store, load_config
 from rory_runtime.supervisor.embed import absolute_file_arguments
@@ -81,10 +82,8 @@ def test_a_relative_program_must_be_an_executable_file(tmp_path: Path) -> None:
     assert err.reason == f'node a: ./run.sh is not an executable file (looked in {tmp_path})'
 
 
-@pytest.mark.parametrize('store', ['/proc/rory-store', 'a_file'])
-def test_a_store_that_cannot_be_made_is_refused_before_anything_starts(
-    tmp_path: Path, store: str
-) -> None:
+@pytest.mark.parametrize('store', ['a_file', 'a_file/store'])
+def test_a_store_on_a_file_is_refused_and_the_file_kept(tmp_path: Path, store: str) -> None:
     (tmp_path / 'a_file').write_text('data that must survive')
     err = _refused(check_store, _config(tmp_path, f'''
         store: {store}
@@ -92,18 +91,19 @@ def test_a_store_that_cannot_be_made_is_refused_before_anything_starts(
           - {{name: a, command: [python, -c, 'pass']}}
     '''))
     assert err.field == 'store'
-    assert 'cannot create or write' in err.reason
+    assert err.reason == (f'{tmp_path / store}: cannot create or write: '
+                          f'{tmp_path / "a_file"} is not a folder')
     assert (tmp_path / 'a_file').read_text() == 'data that must survive'
 
 
-def test_a_usable_store_is_made_private(tmp_path: Path) -> None:
+def test_checking_a_store_makes_nothing(tmp_path: Path) -> None:
+    # A ROS parameter may still name another store: the file's is not made by the check.
     check_store(load_config(_config(tmp_path, '''
         store: deep/er/store
         nodes:
           - {name: a, command: [python, -c, 'pass']}
     ''')))
-    assert stat.S_IMODE((tmp_path / 'deep' / 'er' / 'store').stat().st_mode) == 0o700
-    assert list((tmp_path / 'deep' / 'er' / 'store').iterdir()) == []
+    assert not (tmp_path / 'deep').exists()
 
 
 def test_a_yaml_error_says_file_line_and_column(tmp_path: Path) -> None:
@@ -141,6 +141,26 @@ def test_the_command_line_says_one_line_and_exits_2(tmp_path: Path) -> None:
     assert done.stderr == (f'rory: error: {tmp_path / "supervise.yaml"}: nodes[0].command: '
                            'node integrator: integrator_node_nowhere is not on PATH\n')
     assert not (tmp_path / '.rory').exists()  # nothing started, nothing made
+
+
+@pytest.mark.ros
+def test_a_store_that_cannot_be_made_ends_the_start_in_one_line(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    # /proc takes no folder, whoever asks: refused when the store is claimed, before any node.
+    _config(tmp_path, '''
+        store: /proc/rory-store
+        nodes:
+          - {name: a, command: [python, -c, 'import time; time.sleep(30)']}
+    ''')
+    done = subprocess.run([sys.executable, '-m', 'rory_runtime.cli', 'supervise',
+                           'supervise.yaml'], cwd=tmp_path, env=scenario_env(ros_domain),
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.startswith(f'rory: error: {tmp_path / "supervise.yaml"}: store: '
+                                  '/proc/rory-store: cannot create or write: ')
+    assert done.stderr.count('\n') == 1 and 'Traceback' not in done.stderr
+    assert 'spawned' not in done.stdout
 
 
 def test_version(tmp_path: Path) -> None:

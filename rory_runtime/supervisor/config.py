@@ -19,6 +19,7 @@ Example::
         nodes: [integrator]       # only while one of these recovers (default: every node)
     store: .rory
     dds: fast_rediscovery         # fast_rediscovery (default) | inherit
+    prefix_output: true           # node lines as "[name] ..." (default: with several nodes)
 
 Every error names the file and the field (``nodes[0].method``).
 """
@@ -104,6 +105,13 @@ class SupervisorConfig:
     dds: str = 'fast_rediscovery'
     # Earlier runs a fresh start keeps in the store (.previous, .previous.1, ...).
     keep_runs: int = 3
+    # Node output lines prefixed with ``[name] ``; None: when there is more than one node.
+    prefix_output: bool | None = None
+
+    @property
+    def prefixes_output(self) -> bool:
+        """Whether node output lines get their node's name in front (supervisor/output.py)."""
+        return self.prefix_output if self.prefix_output is not None else len(self.nodes) > 1
 
 
 class _Fields:
@@ -196,7 +204,8 @@ def parse_config(doc: Any, path: Path, folder: Path) -> SupervisorConfig:
     Raises:
         ConfigError: A field is invalid.
     """
-    top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds', 'keep_runs'})
+    top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds', 'keep_runs',
+                                  'prefix_output'})
 
     nodes_raw = top.required('nodes')
     if not isinstance(nodes_raw, list) or not nodes_raw:
@@ -228,9 +237,12 @@ def parse_config(doc: Any, path: Path, folder: Path) -> SupervisorConfig:
     keep_runs = top.obj.get('keep_runs', SupervisorConfig.keep_runs)
     if isinstance(keep_runs, bool) or not isinstance(keep_runs, int) or keep_runs < 1:
         raise top.error('keep_runs', f'must be a positive integer, got {keep_runs!r}')
+    prefix_output = top.obj.get('prefix_output')
+    if prefix_output is not None and not isinstance(prefix_output, bool):
+        raise top.error('prefix_output', f'must be true or false, got {prefix_output!r}')
     return SupervisorConfig(
         path=path, folder=folder, nodes=nodes, safe_state=safe, store=store, dds=dds,
-        keep_runs=keep_runs,
+        keep_runs=keep_runs, prefix_output=prefix_output,
     )
 
 

@@ -45,8 +45,10 @@ class Child(Protocol):
 class Launcher(Protocol):
     """Starts node processes."""
 
-    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> Child:
-        """Start ``argv`` with exactly ``env`` in ``cwd``."""
+    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path,
+              label: str = '') -> Child:
+        """Start ``argv`` with exactly ``env`` in ``cwd``; ``label`` names it in its output
+        lines when they are prefixed (supervisor/output.py)."""
         ...
 
     def prepare(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> int | None:
@@ -106,12 +108,15 @@ class PopenLauncher:
     """
 
     def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path,
-              why_cold: str = '') -> _PopenChild:
-        """Start a node process."""
+              why_cold: str = '', output: Sequence[int] = ()) -> _PopenChild:
+        """Start a node process; ``output``: its stdout and stderr, if not ours."""
+        out, err = output if output else (None, None)
         proc = subprocess.Popen(
             list(argv),
             env=dict(env),
             cwd=cwd,
+            stdout=out,
+            stderr=err,
             start_new_session=True,
             preexec_fn=_die_with_supervisor,
         )

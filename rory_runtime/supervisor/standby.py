@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import RoryError
+from .output import STANDBY_LABEL, OutputPrefixer, Streams
 from .process import Child, PopenLauncher
 from .states import LOG_PREFIX
 from .zygote import (
@@ -118,6 +119,7 @@ class Standby:
     wanted_by: set[tuple[tuple[str, ...], str]] = field(default_factory=set)
     ready_at: float | None = None
     done: threading.Event = field(default_factory=threading.Event)
+    streams: Streams | None = None  # its output pipes, when lines are prefixed
 
     @property
     def pid(self) -> int:
@@ -144,12 +146,16 @@ class ForkLauncher:
         zygote: The fork server (started before the supervisor's ``rclpy.init``); without one
             every start is an ``exec``, cold.
         clock: Monotonic clock.
+        output: Prefixes every process's output lines with its label; None: processes write
+            to the supervisor's own stdout and stderr.
     """
 
     def __init__(self, zygote: Zygote | None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 output: OutputPrefixer | None = None) -> None:
         self.zygote = zygote
         self._clock = clock
+        self.output = output
         self._standbys: dict[Hashable, Standby] = {}
         self._lock = threading.Lock()
         self._exec = PopenLauncher()
@@ -183,9 +189,15 @@ class ForkLauncher:
         assert program is not None
         args = ros_arguments(program.args)
         init_args = [program.argv[0], *(('--ros-args', *args) if args else ())]
-        forked = self.zygote.fork_standby(init_args, env, cwd)
+        streams = self.output.open(STANDBY_LABEL) if self.output is not None else None
+        try:
+            forked = self.zygote.fork_standby(init_args, env, cwd,
+                                              streams.child_fds if streams else ())
+        finally:
+            if streams is not None:
+                streams.close_child_ends()
         standby = Standby(PidChild(forked.pid, warm=True), forked.control, self._clock(),
-                          {_key(argv, cwd)})
+                          {_key(argv, cwd)}, streams=streams)
         with self._lock:
             old = self._standbys.pop(signature, None)
             self._standbys[signature] = standby
@@ -220,11 +232,12 @@ class ForkLauncher:
                     return standby
         return None
 
-    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> Child:
+    def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path,
+              label: str = '') -> Child:
         """Activate the shared standby if it fits, else fork cold, else exec cold."""
         signature, why = self._forkable(argv, env)
         if signature is None or self.zygote is None:
-            return self._exec.spawn(argv, env, cwd, why)
+            return self._exec_spawn(argv, env, cwd, why, label)
         with self._lock:
             standby = self._standbys.pop(signature, None)
         why = 'no standby waiting'
@@ -234,6 +247,8 @@ class ForkLauncher:
             if code is not None:
                 why = f'the standby had exited ({code})'
             else:
+                if standby.streams is not None:
+                    standby.streams.relabel(label or STANDBY_LABEL)
                 try:
                     os.write(standby.control, activation_line(argv, env, cwd))
                     os.close(standby.control)
@@ -242,11 +257,24 @@ class ForkLauncher:
                 else:
                     return standby.child
             standby.drop()
+        streams = self.output.open(label) if self.output is not None else None
         try:
-            pid = self.zygote.fork_node(argv, env, cwd)
+            pid = self.zygote.fork_node(argv, env, cwd, streams.child_fds if streams else ())
         except RoryError as err:
-            return self._exec.spawn(argv, env, cwd, f'{why}; {err}')
+            return self._exec_spawn(argv, env, cwd, f'{why}; {err}', label)
+        finally:
+            if streams is not None:
+                streams.close_child_ends()
         return PidChild(pid, warm=False, why_cold=why)
+
+    def _exec_spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path, why: str,
+                    label: str) -> Child:
+        streams = self.output.open(label) if self.output is not None else None
+        try:
+            return self._exec.spawn(argv, env, cwd, why, streams.child_fds if streams else ())
+        finally:
+            if streams is not None:
+                streams.close_child_ends()
 
     def discard(self, argv: Sequence[str], cwd: Path) -> None:
         """This command no longer wants a standby; the shared one goes once none does."""
@@ -267,3 +295,5 @@ class ForkLauncher:
             standby.drop()
         if self.zygote is not None:
             self.zygote.close()
+        if self.output is not None:
+            self.output.close()

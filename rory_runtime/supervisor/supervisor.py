@@ -19,6 +19,7 @@ import re
 import secrets
 import shutil
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -46,6 +47,7 @@ from ..threads import name_this_thread
 from .config import NodeConfig, SupervisorConfig, check_store, store_error
 from .diagnostics import NodeHealth, Reporter, age
 from .lineage import InputGap
+from .output import OutputPrefixer
 from .parameters import NODE_NAME as SUPERVISOR_NODE
 from .parameters import apply_parameters, own_ros_args
 from .poison import PoisonGuard
@@ -296,7 +298,8 @@ class ManagedNode:
         self.release_sent = False
         self._new_shadow_topic()
         env = self._env(mode, self.incarnation)
-        child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder)
+        child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder,
+                                        label=self.id)
         self.child = child
         incarnation = self.incarnation
         warm = bool(getattr(child, 'warm', False))
@@ -1014,6 +1017,9 @@ class Supervisor:
         self._apply_dds_settings()
         if self._own_launcher:
             self._start_zygote()
+            if self.config.prefixes_output and isinstance(self.launcher, ForkLauncher):
+                # After the zygote's fork: the prefixer is a thread.
+                self.launcher.output = OutputPrefixer(sys.stdout.buffer, sys.stderr.buffer)
         try:
             # Its log goes to /rosout through rclpy (RosoutHandler); the console already has it.
             rclpy.init(args=['rory', '--ros-args', '--disable-stdout-logs',

@@ -37,6 +37,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import gc
+import io
 import json
 import logging
 import os
@@ -174,9 +175,12 @@ def _serve(sock: socket.socket, supervisor: int) -> int:
         reply: dict[str, Any]
         sent: list[int] = []
         try:
-            reply, sent = _handle(request, supervisor, sock)
+            reply, sent = _handle(request, supervisor, sock, _fds)
         except Exception as err:  # a bad request must not end the zygote
             reply = {'error': f'{type(err).__name__}: {err}'}
+        finally:
+            for fd in _fds:  # the child has its own copies
+                os.close(fd)
         try:
             _send(sock, reply, sent)
         except OSError:
@@ -186,18 +190,27 @@ def _serve(sock: socket.socket, supervisor: int) -> int:
                 os.close(fd)
 
 
-def _handle(request: dict[str, Any], supervisor: int,
-            sock: socket.socket) -> tuple[dict[str, Any], list[int]]:
+def _handle(request: dict[str, Any], supervisor: int, sock: socket.socket,
+            output: Sequence[int]) -> tuple[dict[str, Any], list[int]]:
+    """Fork what ``request`` asks for.
+
+    Args:
+        output: The child's stdout and stderr, when the supervisor sent them (its lines are
+            prefixed: supervisor/output.py); else it keeps the zygote's.
+    """
+    if len(output) not in (0, 2):
+        raise RoryError(f'{len(output)} descriptors sent, expected none or two')
     kind = request.get('kind')
     if kind == 'node':
-        pid = _fork_child(supervisor, lambda: _become_node(request), close=(sock.fileno(),))
+        pid = _fork_child(supervisor, lambda: _become_node(request), close=(sock.fileno(),),
+                          output=output)
         return {'pid': pid}, []
     if kind == 'standby':
         control_r, control_w = os.pipe()
         ready_r, ready_w = os.pipe()
         try:
             pid = _fork_child(supervisor, lambda: _become_standby(request, control_r, ready_w),
-                              close=(sock.fileno(), control_w, ready_r))
+                              close=(sock.fileno(), control_w, ready_r), output=output)
         except BaseException:
             for fd in (control_w, ready_r):
                 os.close(fd)
@@ -209,12 +222,14 @@ def _handle(request: dict[str, Any], supervisor: int,
     raise RoryError(f'unknown request {kind!r}')
 
 
-def _fork_child(supervisor: int, body: Callable[[], int], close: Sequence[int]) -> int:
+def _fork_child(supervisor: int, body: Callable[[], int], close: Sequence[int],
+                output: Sequence[int] = ()) -> int:
     """Fork ``body`` twice over, so that the supervisor (a subreaper) becomes its parent.
 
     Args:
         close: Descriptors of the zygote's that the child must not keep (its socket, the
             supervisor's ends of the child's pipes).
+        output: Descriptors to become the child's stdout and stderr, if any.
     """
     report_r, report_w = os.pipe()
     middle = os.fork()
@@ -224,6 +239,9 @@ def _fork_child(supervisor: int, body: Callable[[], int], close: Sequence[int]) 
         if child == 0:
             os.close(report_w)
             for fd in close:
+                os.close(fd)
+            for target, fd in zip((1, 2), output, strict=False):
+                os.dup2(fd, target)
                 os.close(fd)
             os._exit(_child_main(supervisor, body))
         os.write(report_w, struct.pack('i', child))
@@ -301,6 +319,22 @@ def _enter(env: Mapping[str, str], cwd: str) -> None:
     os.environ.clear()
     os.environ.update(env)
     os.chdir(cwd)
+    if env.get('PYTHONUNBUFFERED'):
+        _unbuffered_streams()
+
+
+def _unbuffered_streams() -> None:
+    """What ``PYTHONUNBUFFERED`` gives a new interpreter: a forked one has the zygote's
+    streams, buffered by a block when they were not a terminal, so a node killed after a
+    ``print`` would lose it."""
+    for name, fd in (('stdout', 1), ('stderr', 2)):
+        old = getattr(sys, name)
+        with contextlib.suppress(Exception):
+            old.flush()
+        setattr(sys, name, io.TextIOWrapper(io.FileIO(fd, 'w', closefd=False),
+                                            encoding=getattr(old, 'encoding', None),
+                                            errors=getattr(old, 'errors', None),
+                                            write_through=True))
 
 
 def forget_shadowed(home: Path) -> list[str]:
@@ -437,14 +471,15 @@ class Zygote:
         child.close()
         return cls(parent, pid, os.environ)
 
-    def _ask(self, request: dict[str, Any]) -> tuple[dict[str, Any], list[int]]:
+    def _ask(self, request: dict[str, Any],
+             output: Sequence[int] = ()) -> tuple[dict[str, Any], list[int]]:
         # A subreaper only while the zygote forks: the child it forks twice is then re-parented
         # here. Left on, every process a node leaves behind would be re-parented here too, and
         # nobody would reap it.
         libc = _libc()
         libc.prctl(_PR_SET_CHILD_SUBREAPER, 1)
         try:
-            _send(self._sock, request)
+            _send(self._sock, request, output)
             reply, fds = _receive(self._sock)
         except OSError as err:
             raise RoryError(f'the fork server is gone: {err}') from None
@@ -458,17 +493,19 @@ class Zygote:
             raise RoryError(f'the fork server could not start it: {reply["error"]}')
         return reply, fds
 
-    def fork_node(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> int:
-        """Start a node's program as a fork; its pid (a child of this process)."""
+    def fork_node(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path,
+                  output: Sequence[int] = ()) -> int:
+        """Start a node's program as a fork; its pid (a child of this process). ``output``:
+        its stdout and stderr, if not the supervisor's."""
         reply, _ = self._ask({'kind': 'node', 'argv': list(argv), 'env': dict(env),
-                              'cwd': str(cwd)})
+                              'cwd': str(cwd)}, output)
         return int(reply['pid'])
 
     def fork_standby(self, init_args: Sequence[str], env: Mapping[str, str],
-                     cwd: Path) -> ForkedStandby:
+                     cwd: Path, output: Sequence[int] = ()) -> ForkedStandby:
         """Start a standby that calls ``rclpy.init(args=init_args)`` under ``env``."""
         reply, fds = self._ask({'kind': 'standby', 'init_args': list(init_args),
-                                'env': dict(env), 'cwd': str(cwd)})
+                                'env': dict(env), 'cwd': str(cwd)}, output)
         if len(fds) != 2:
             for fd in fds:
                 os.close(fd)

@@ -18,10 +18,17 @@ from typing import Any
 
 
 def main() -> int:
+    from rory_runtime.supervisor.output import OutputPrefixer
     from rory_runtime.supervisor.standby import ForkLauncher
     from rory_runtime.supervisor.zygote import Zygote
 
     launcher = ForkLauncher(Zygote.start([], preload=('rclpy.node',)))
+    # Prefixed output goes to a file: this process's stdout carries the replies.
+    prefixed_to = os.environ.get('LAUNCHER_HOST_PREFIXED_OUTPUT')
+    if prefixed_to:
+        out = open(prefixed_to + '.out', 'ab')  # noqa: SIM115 (open while the host runs)
+        err = open(prefixed_to + '.err', 'ab')  # noqa: SIM115
+        launcher.output = OutputPrefixer(out, err)
     children: dict[int, Any] = {}
     for line in sys.stdin:
         request = json.loads(line)
@@ -30,7 +37,8 @@ def main() -> int:
         if op == 'prepare':
             reply['pid'] = launcher.prepare(request['argv'], request['env'], Path(request['cwd']))
         elif op == 'spawn':
-            child = launcher.spawn(request['argv'], request['env'], Path(request['cwd']))
+            child = launcher.spawn(request['argv'], request['env'], Path(request['cwd']),
+                                   label=request.get('label', ''))
             children[child.pid] = child
             reply = {'pid': child.pid, 'warm': getattr(child, 'warm', None),
                      'why_cold': getattr(child, 'why_cold', '')}

@@ -57,9 +57,11 @@ if __name__ == '__main__':
 class Host:
     """The launcher in its own fresh process (launcher_host.py)."""
 
-    def __init__(self, domain: int) -> None:
+    def __init__(self, domain: int, prefixed_output: Path | None = None) -> None:
         env = {**os.environ, 'ROS_DOMAIN_ID': str(domain),
                'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+        if prefixed_output is not None:
+            env['LAUNCHER_HOST_PREFIXED_OUTPUT'] = str(prefixed_output)
         self.proc = subprocess.Popen(
             [sys.executable, str(Path(__file__).with_name('launcher_host.py'))], env=env,
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -263,3 +265,47 @@ def test_nodes_share_a_standby_when_their_ros_arguments_and_dds_environment_agre
     same = init_signature(program, env)
     assert init_signature(program, {**env, 'RORY_NODE': 'b', 'HOME': '/x'}) == same
     assert init_signature(program, {**env, 'ROS_DOMAIN_ID': '4'}) != same
+
+
+CHATTY = '''
+import sys, time
+print('to stdout from', sys.argv[1])
+print('to stderr from', sys.argv[1], file=sys.stderr)
+sys.stdout.write('no line end')
+'''
+
+
+def test_output_lines_carry_the_label_of_the_node_the_process_is(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    """Prefixed output (supervisor/output.py): a standby's lines carry the node it became; a
+    cold fork and an exec'd command their own; a line cut by the exit is written whole."""
+    script = tmp_path / 'chatty.py'
+    script.write_text(CHATTY)
+    host = Host(ros_domain, prefixed_output=tmp_path / 'console')
+    try:
+        warm = [sys.executable, str(script), 'alpha']
+        host.ask('prepare', argv=warm, env=_env(ros_domain, 2), cwd=str(tmp_path))
+        _wait_ready(host, warm, tmp_path)
+        started = [host.ask('spawn', argv=warm, env=_env(ros_domain, 3), cwd=str(tmp_path),
+                            label='alpha')]
+        assert started[0]['warm'] is True
+        started.append(host.ask('spawn', argv=[sys.executable, str(script), 'beta'],
+                                env=_env(ros_domain, 3), cwd=str(tmp_path), label='beta'))
+        assert started[1]['warm'] is False
+        shell = 'echo to stdout from gamma; echo to stderr from gamma >&2'
+        started.append(host.ask('spawn', argv=['bash', '-c', shell], env=_env(ros_domain, 3),
+                                cwd=str(tmp_path), label='gamma'))
+        for child in started:
+            assert host.ask('wait', pid=child['pid'], timeout=30)['code'] == 0
+    finally:
+        host.close()  # closes the prefixer: what is left in the pipes is written
+    out = (tmp_path / 'console.out').read_text().splitlines()
+    err = (tmp_path / 'console.err').read_text().splitlines()
+    for name in ('alpha', 'beta'):
+        assert f'[{name}] to stdout from {name}' in out
+        assert f'[{name}] no line end' in out
+        assert f'[{name}] to stderr from {name}' in err
+    assert '[gamma] to stdout from gamma' in out and '[gamma] to stderr from gamma' in err
+    assert all(line.startswith(('[alpha] ', '[beta] ', '[gamma] ', '[rory-standby] '))
+               for line in out + err), out + err

@@ -453,3 +453,14 @@ def test_keep_runs_defaults_to_three_and_must_be_a_positive_integer(tmp_path: Pa
     for bad in ('0', 'true', '2.5', 'many'):
         err = refusal(write(tmp_path, node + f'keep_runs: {bad}\n'))
         assert err.field == 'keep_runs' and 'positive integer' in err.reason
+
+
+def test_output_is_prefixed_with_several_nodes_unless_told(tmp_path: Path) -> None:
+    one = 'nodes: [{name: a, command: [x]}]\n'
+    two = 'nodes: [{name: a, command: [x]}, {name: b, command: [y]}]\n'
+    assert not load_config(write(tmp_path, one)).prefixes_output
+    assert load_config(write(tmp_path, two)).prefixes_output
+    assert load_config(write(tmp_path, one + 'prefix_output: true\n')).prefixes_output
+    assert not load_config(write(tmp_path, two + 'prefix_output: false\n')).prefixes_output
+    err = refusal(write(tmp_path, one + 'prefix_output: sometimes\n'))
+    assert err.field == 'prefix_output' and 'true or false' in err.reason

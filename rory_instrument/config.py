@@ -7,13 +7,19 @@ keyvars.yaml. The shape is::
     nodes:
       - file: integrator.py        # relative to SRC
         class: Integrator          # dotted for nested classes: Outer.Inner
-        vars: [total, ekf.P]       # self.<path> attributes; dotted paths reach inside
+        vars:                      # self.<path> attributes; dotted paths reach inside
+          - total
+          - ekf.P
+          - {name: goal, max_age: 30, on_stale: refuse}   # a freshness rule
         module_vars: [counter]     # optional: module globals (nodes written as functions)
         checkpoint_interval: 0.5   # optional, seconds
         replay: paced              # optional, 'paced' or 'fast'
 
 An entry names ``class`` with ``vars``, or ``module_vars``, or both (a class may then leave
-out ``vars``). Plain scalars are typed as YAML 1.2 (the core schema editors use), so
+out ``vars``). An entry of either list is a path, or a mapping with the path as ``name`` and
+optionally ``max_age`` (seconds) and ``on_stale`` (``reset``, the default, ``keep`` or
+``refuse``): what the runtime does with the variable when the checkpoint it comes from is
+older than ``max_age``. Plain scalars are typed as YAML 1.2 (the core schema editors use), so
 ``vars: [on]`` names an attribute ``on`` while ``file: 123`` is a number, not a path.
 ``keyvars.schema.json`` next to this module describes the same shape as a JSON Schema for
 editors; this parser stays the authority, for its ``file:line:col`` messages and the rules a
@@ -41,6 +47,11 @@ import yaml
 from rory_instrument.errors import ConfigError
 
 REPLAY_MODES = ('paced', 'fast')
+# What a freshness rule does with a variable whose checkpoint is too old; the first is the
+# default.
+STALE_ACTIONS = ('reset', 'keep', 'refuse')
+# The keys of an entry of ``vars`` or ``module_vars`` written as a mapping.
+_PATH_ENTRY_FIELDS = ('name', 'max_age', 'on_stale')
 # The JSON Schema of keyvars.yaml, shipped next to this module.
 SCHEMA_NAME = 'keyvars.schema.json'
 
@@ -72,6 +83,23 @@ class Mark:
 
 
 @dataclass(frozen=True)
+class FreshnessRule:
+    """How old a checkpointed variable may be when it is restored, and what happens if older.
+
+    Attributes:
+        path: The variable's path, as listed in ``vars`` or ``module_vars``.
+        max_age: Seconds since the checkpoint was taken, on the clock the node uses.
+        on_stale: ``'reset'``, ``'keep'`` or ``'refuse'`` (see ``STALE_ACTIONS``).
+        module: True for an entry of ``module_vars``, False for one of ``vars``.
+    """
+
+    path: str
+    max_age: float
+    on_stale: str
+    module: bool
+
+
+@dataclass(frozen=True)
 class NodeSpec:
     """One entry of ``nodes:``: a node to instrument and the variables it checkpoints.
 
@@ -85,9 +113,12 @@ class NodeSpec:
         checkpoint_interval: Seconds between checkpoints, or None for the runtime default.
         replay: ``'paced'`` or ``'fast'``, or None for the runtime default.
         module_vars: Paths of module globals to checkpoint (``counter``, ``state.pose``).
+        freshness: The rules of the entries that set ``max_age``: those of ``vars`` in
+            order, then those of ``module_vars``.
         marks: Position of each field, keyed by its path below the node (``''`` for the
-            node itself, ``'class'``, ``'vars'``, ``'vars[2]'``, ``'module_vars[0]'``...).
-            Not compared.
+            node itself, ``'class'``, ``'vars'``, ``'vars[2]'``, ``'module_vars[0]'``,
+            ``'vars[2].max_age'``...). ``'vars[2]'`` is where the path is written, also in
+            the mapping form, so that messages about the path point at it. Not compared.
     """
 
     index: int
@@ -97,6 +128,7 @@ class NodeSpec:
     checkpoint_interval: float | None = None
     replay: str | None = None
     module_vars: tuple[str, ...] = ()
+    freshness: tuple[FreshnessRule, ...] = ()
     marks: Mapping[str, Mark] = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -230,11 +262,25 @@ def yaml12_number(node: yaml.ScalarNode) -> float | None:
     return None
 
 
+def one_of(options: tuple[str, ...]) -> str:
+    """Returns the options quoted for a message: ``'a', 'b' or 'c'``."""
+    quoted = [repr(option) for option in options]
+    return ', '.join(quoted[:-1]) + ' or ' + quoted[-1] if len(quoted) > 1 else quoted[0]
+
+
 def path_overlap(first: str, second: str) -> bool:
     """Returns whether one attribute path is the other or lies inside it (``ekf``, ``ekf.P``)."""
     a, b = first.split('.'), second.split('.')
     n = min(len(a), len(b))
     return a[:n] == b[:n]
+
+
+@dataclass(frozen=True)
+class _ListedPaths:
+    """The parsed value of ``vars`` or ``module_vars``, before it is split into NodeSpec."""
+
+    names: tuple[str, ...]
+    rules: tuple[FreshnessRule, ...]
 
 
 # Parses the value of one node field; returns the value to store in NodeSpec.
@@ -305,7 +351,7 @@ class _Parser:
             values[_NODE_FIELD_ATTRS.get(name, name)] = _NODE_FIELDS[name](
                 self, value, f'{where}.{name}', marks
             )
-        return NodeSpec(index=index, marks=marks, **values)
+        return NodeSpec(index=index, marks=marks, **_split_listed_paths(values))
 
     def node_shape(
         self, node: yaml.Node, where: str, items: Mapping[str, tuple[yaml.Node, yaml.Node]]
@@ -350,27 +396,95 @@ class _Parser:
         raise self.fail(node, f'{where}: {name!r} is not an attribute path (Python '
                         'identifiers separated by dots, e.g. ekf.P)')
 
+    def seconds(self, node: yaml.Node, where: str) -> float:
+        """Returns a positive, finite YAML 1.2 number (a quoted one is a string)."""
+        problem = f'{where}: expected a positive number of seconds'
+        if not isinstance(node, yaml.ScalarNode):
+            raise self.fail(node, problem)
+        # Quoted scalars are strings even when they look like numbers.
+        if node.style is not None:
+            raise self.fail(node, f'{problem}, got the string {node.value!r}')
+        value = yaml12_number(node)
+        if value is None or not math.isfinite(value) or value <= 0:
+            raise self.fail(node, f'{problem}, got {node.value!r}')
+        return value
+
+    def choice(self, node: yaml.Node, where: str, options: tuple[str, ...]) -> str:
+        """Returns a string that is one of ``options``, exactly as spelled there."""
+        expected = one_of(options)
+        value = self.text(node, where, expected)
+        if value not in options:
+            raise self.fail(node, f'{where}: expected {expected}, got {value!r}')
+        return value
+
     def paths(
         self, node: yaml.Node, where: str, marks: dict[str, Mark], key: str
-    ) -> tuple[str, ...]:
-        """Returns a non-empty list of distinct, non-overlapping attribute paths."""
+    ) -> _ListedPaths:
+        """Returns a non-empty list of distinct, non-overlapping attribute paths and their rules.
+
+        Plain entries and mapping entries are one list: a path may not appear twice or
+        inside another whichever way each is written.
+        """
         if not isinstance(node, yaml.SequenceNode) or not node.value:
             raise self.fail(node, f'{where}: expected a non-empty list of attribute names')
         names: list[str] = []
+        rules: list[FreshnessRule] = []
+        module = key == 'module_vars'
         for i, item in enumerate(node.value):
-            marks[f'{key}[{i}]'] = Mark.of(item)
-            name = self.attribute_path(item, f'{where}[{i}]')
+            name, rule = self.path_entry(item, f'{where}[{i}]', marks, f'{key}[{i}]', module)
+            at = marks[f'{key}[{i}]']
             if name in names:
-                raise self.fail(item, f'{where}[{i}]: duplicate var {name!r}')
+                raise self.fail(at, f'{where}[{i}]: duplicate var {name!r}')
             for j, other in enumerate(names):
                 if path_overlap(name, other):
                     raise self.fail(
-                        item,
+                        at,
                         f'{where}[{i}]: {name!r} overlaps {other!r} ({key}[{j}]); list either '
                         'the whole object or parts of it',
                     )
             names.append(name)
-        return tuple(names)
+            if rule is not None:
+                rules.append(rule)
+        return _ListedPaths(tuple(names), tuple(rules))
+
+    def path_entry(
+        self, item: yaml.Node, where: str, marks: dict[str, Mark], key: str, module: bool
+    ) -> tuple[str, FreshnessRule | None]:
+        """Returns the path of one list entry, and its rule if it is a mapping with max_age.
+
+        Records ``marks[key]`` where the path is written, and ``marks[key + '.max_age']``
+        and the like for the keys of a mapping.
+        """
+        if isinstance(item, yaml.SequenceNode):
+            raise self.fail(item, f'{where}: expected an attribute name or a mapping with keys '
+                            f'{", ".join(_PATH_ENTRY_FIELDS)}')
+        if not isinstance(item, yaml.MappingNode):
+            marks[key] = Mark.of(item)
+            return self.attribute_path(item, where), None
+        fields = self.mapping(item, where, _PATH_ENTRY_FIELDS, ('name',))
+        for name, (_key, value) in fields.items():
+            marks[f'{key}.{name}'] = Mark.of(value)
+        marks[key] = marks[f'{key}.name']
+        path = self.attribute_path(fields['name'][1], f'{where}.name')
+        return path, self.freshness_rule(path, fields, where, module)
+
+    def freshness_rule(
+        self, path: str, fields: Mapping[str, tuple[yaml.Node, yaml.Node]], where: str,
+        module: bool,
+    ) -> FreshnessRule | None:
+        """Returns the rule of a mapping entry, or None when it sets no ``max_age``."""
+        stale = fields.get('on_stale')
+        if 'max_age' not in fields:
+            if stale is not None:
+                # Refused rather than ignored: the author meant a rule that would never apply.
+                raise self.fail(stale[0], f'{where}.on_stale: needs max_age; without it the '
+                                'variable is never stale')
+            return None
+        max_age = self.seconds(fields['max_age'][1], f'{where}.max_age')
+        action = STALE_ACTIONS[0]
+        if stale is not None:
+            action = self.choice(stale[1], f'{where}.on_stale', STALE_ACTIONS)
+        return FreshnessRule(path, max_age, action, module)
 
 
 def _parse_file(p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]) -> str:
@@ -389,35 +503,39 @@ def _parse_class(p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]
 
 def _parse_vars(
     p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]
-) -> tuple[str, ...]:
+) -> _ListedPaths:
     return p.paths(node, where, marks, 'vars')
 
 
 def _parse_module_vars(
     p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]
-) -> tuple[str, ...]:
+) -> _ListedPaths:
     return p.paths(node, where, marks, 'module_vars')
 
 
 def _parse_interval(p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]) -> float:
-    problem = f'{where}: expected a positive number of seconds'
-    if not isinstance(node, yaml.ScalarNode):
-        raise p.fail(node, problem)
-    # Quoted scalars are strings even when they look like numbers.
-    if node.style is not None:
-        raise p.fail(node, f'{problem}, got the string {node.value!r}')
-    value = yaml12_number(node)
-    if value is None or not math.isfinite(value) or value <= 0:
-        raise p.fail(node, f'{problem}, got {node.value!r}')
-    return value
+    return p.seconds(node, where)
 
 
 def _parse_replay(p: _Parser, node: yaml.Node, where: str, marks: dict[str, Mark]) -> str:
-    modes = ' or '.join(repr(m) for m in REPLAY_MODES)
-    value = p.text(node, where, modes)
-    if value not in REPLAY_MODES:
-        raise p.fail(node, f'{where}: expected {modes}, got {value!r}')
-    return value
+    return p.choice(node, where, REPLAY_MODES)
+
+
+def _split_listed_paths(values: dict[str, Any]) -> dict[str, Any]:
+    """Turns the parsed ``vars`` and ``module_vars`` into NodeSpec's paths and ``freshness``.
+
+    The rules of ``vars`` come first whatever order the keys were written in, so that the
+    same entries always give the same decorator.
+    """
+    fields = dict(values)
+    rules: list[FreshnessRule] = []
+    for name in ('vars', 'module_vars'):
+        listed = fields.get(name)
+        if isinstance(listed, _ListedPaths):
+            fields[name] = listed.names
+            rules.extend(listed.rules)
+    fields['freshness'] = tuple(rules)
+    return fields
 
 
 # Every key a node entry may have, in the order messages list them.

@@ -4,8 +4,9 @@ The digest covers the file, the class, its vars, its module vars and the hash of
 module's source with RORY's additions removed. A checkpoint written by one build is
 therefore recognised as foreign by a build of different code or a different var list,
 while re-instrumenting an output (which strips to the same source) yields the same digest.
-The per-node settings (``checkpoint_interval``, ``replay``) are not hashed: changing them
-keeps the checkpoints valid.
+The per-node settings (``checkpoint_interval``, ``replay``) and the freshness rules of vars
+are not hashed: changing them keeps the checkpoints valid (a var written as a mapping is
+passed here as its plain path).
 """
 
 from __future__ import annotations

@@ -11,10 +11,12 @@ state is in module globals, one call right after ``import rory_runtime``::
     class Integrator(Node):
 
 Either takes ``checkpoint_interval=1.0, replay="fast"`` before the digest when keyvars.yaml
-sets them; a class whose entry also lists module globals gets ``module_vars=("counter",)``
-after its ``vars`` instead of a module call. The checks run first
-(``rory_instrument.checks``); the rewrite is then a handful of small libcst passes, one per
-concern:
+sets them, then ``freshness=(("history", 5.0, "reset"), ("global:counter", 30.0, "refuse"))``
+when entries have freshness rules: one ``(checkpoint key, max_age, on_stale)`` per rule, the
+key of a module global prefixed with ``global:`` as in the checkpoint. A class whose entry
+also lists module globals gets ``module_vars=("counter",)`` after its ``vars`` instead of a
+module call. The checks run first (``rory_instrument.checks``); the rewrite is then a handful
+of small libcst passes, one per concern:
 
 * ``StripRoryTransformer`` removes RORY's own additions, so the source hash in the manifest
   is the same for a file and for its instrumented output.
@@ -49,7 +51,7 @@ from rory_instrument.checks import (
     collect_module,
 )
 from rory_instrument.clocks import wall_clock_warnings
-from rory_instrument.config import KeyVars, NodeSpec
+from rory_instrument.config import FreshnessRule, KeyVars, NodeSpec
 from rory_instrument.entities import check_entities
 from rory_instrument.errors import SourceError
 from rory_instrument.manifest import manifest_digest
@@ -63,8 +65,10 @@ __all__ = [
     'InstrumentedClass',
     'InstrumentedModule',
     'StripRoryTransformer',
+    'checkpoint_key',
     'checkpoint_module_call',
     'checkpointed_call',
+    'freshness_argument',
     'instrument_source',
     'parse_source',
     'source_sha256',
@@ -73,6 +77,12 @@ __all__ = [
 RUNTIME_MODULE = 'rory_runtime'
 CHECKPOINTED = f'{RUNTIME_MODULE}.checkpointed'
 CHECKPOINT_MODULE = f'{RUNTIME_MODULE}.checkpoint_module'
+# A checkpoint stores a module global under this prefix and its path; the same as
+# rory_runtime.state.GLOBAL_PREFIX, spelled out so that instrumenting needs no runtime.
+CHECKPOINT_GLOBAL_PREFIX = 'global:'
+# The rules of an entry as the runtime takes them: (checkpoint key, max_age in seconds,
+# on_stale) each.
+FreshnessArgument = tuple[tuple[str, float, str], ...]
 
 
 def _names(qualified: str) -> Callable[[Collection[QualifiedName]], bool]:
@@ -173,6 +183,21 @@ class StripRoryTransformer(cst.CSTTransformer):
         return updated_node.with_changes(body=body)
 
 
+def checkpoint_key(rule: FreshnessRule) -> str:
+    """Returns the name a checkpoint stores the rule's variable under."""
+    return CHECKPOINT_GLOBAL_PREFIX + rule.path if rule.module else rule.path
+
+
+def freshness_argument(rules: Sequence[FreshnessRule]) -> FreshnessArgument:
+    """Returns the ``freshness=`` value of RORY's calls for an entry's rules, in their order."""
+    return tuple((checkpoint_key(rule), rule.max_age, rule.on_stale) for rule in rules)
+
+
+def _tuple_source(items: Sequence[str]) -> str:
+    """Returns a tuple display of already-written items, with the comma a single one needs."""
+    return '(' + ', '.join(items) + (',' if len(items) == 1 else '') + ')'
+
+
 def _arguments_source(
     vars: Sequence[str],
     manifest: str,
@@ -180,14 +205,17 @@ def _arguments_source(
     module_vars: Sequence[str] = (),
     checkpoint_interval: float | None = None,
     replay: str | None = None,
+    freshness: FreshnessArgument = (),
 ) -> str:
     """Returns the keyword arguments of RORY's calls, unset optional ones left out.
 
-    Paths are identifiers joined by dots and the digest is hex, so nothing needs escaping.
+    Paths are identifiers joined by dots (a key adds ``global:``), actions and replay modes
+    are fixed words and the digest is hex, so nothing needs escaping. Seconds are written as
+    float reprs, which read back as the same float.
     """
 
     def names(values: Sequence[str]) -> str:
-        return '(' + ', '.join(f'"{v}"' for v in values) + (',' if len(values) == 1 else '') + ')'
+        return _tuple_source([f'"{v}"' for v in values])
 
     parts = [f'vars={names(vars)}']
     if module_vars:
@@ -196,6 +224,10 @@ def _arguments_source(
         parts.append(f'checkpoint_interval={checkpoint_interval!r}')
     if replay is not None:
         parts.append(f'replay="{replay}"')
+    if freshness:
+        # float() so that a whole number of seconds is still written as a float (30.0).
+        rules = [f'("{key}", {float(age)!r}, "{action}")' for key, age, action in freshness]
+        parts.append(f'freshness={_tuple_source(rules)}')
     parts.append(f'manifest="{manifest}"')
     return ', '.join(parts)
 
@@ -214,6 +246,7 @@ def checkpointed_call(
     module_vars: Sequence[str] = (),
     checkpoint_interval: float | None = None,
     replay: str | None = None,
+    freshness: FreshnessArgument = (),
 ) -> cst.Call:
     """Builds ``<runtime>.checkpointed(vars=(...), [module_vars=(...),] ..., manifest="...")``.
 
@@ -224,6 +257,8 @@ def checkpointed_call(
         module_vars: Paths of module globals, if any.
         checkpoint_interval: Seconds between checkpoints, if set.
         replay: ``'paced'`` or ``'fast'``, if set.
+        freshness: ``(checkpoint key, max_age, on_stale)`` per rule, if any
+            (``freshness_argument``).
 
     Returns:
         The call expression; its keywords in the order of the parameters above, the
@@ -231,7 +266,7 @@ def checkpointed_call(
     """
     arguments = _arguments_source(
         vars, manifest, module_vars=module_vars, checkpoint_interval=checkpoint_interval,
-        replay=replay,
+        replay=replay, freshness=freshness,
     )
     return _parse_call(f'{runtime}.checkpointed({arguments})')
 
@@ -243,6 +278,7 @@ def checkpoint_module_call(
     *,
     checkpoint_interval: float | None = None,
     replay: str | None = None,
+    freshness: FreshnessArgument = (),
 ) -> cst.Call:
     """Builds ``<runtime>.checkpoint_module(__name__, vars=(...), ..., manifest="...")``.
 
@@ -252,12 +288,15 @@ def checkpoint_module_call(
         manifest: The ``sha256:...`` digest.
         checkpoint_interval: Seconds between checkpoints, if set.
         replay: ``'paced'`` or ``'fast'``, if set.
+        freshness: ``(checkpoint key, max_age, on_stale)`` per rule, if any; the keys of
+            module globals carry the ``global:`` prefix here too.
 
     Returns:
         The call expression.
     """
     arguments = _arguments_source(
-        vars, manifest, checkpoint_interval=checkpoint_interval, replay=replay
+        vars, manifest, checkpoint_interval=checkpoint_interval, replay=replay,
+        freshness=freshness,
     )
     return _parse_call(f'{runtime}.checkpoint_module(__name__, {arguments})')
 
@@ -526,14 +565,16 @@ def instrument_source(
         manifest = _digest(spec, file, digest)
         done.append(InstrumentedClass(spec, digest, manifest))
         interval, replay = spec.checkpoint_interval, spec.replay
+        freshness = freshness_argument(spec.freshness)
         if spec.class_name is None:
             module_call = checkpoint_module_call(
-                runtime, spec.module_vars, manifest, checkpoint_interval=interval, replay=replay
+                runtime, spec.module_vars, manifest, checkpoint_interval=interval,
+                replay=replay, freshness=freshness,
             )
         else:
             calls[spec.class_name] = checkpointed_call(
                 runtime, spec.vars, manifest, module_vars=spec.module_vars,
-                checkpoint_interval=interval, replay=replay,
+                checkpoint_interval=interval, replay=replay, freshness=freshness,
             )
 
     added = False

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from rory_instrument.cli import base_candidates, main
-from rory_instrument.config import Mark, load_keyvars, parse_keyvars
+from rory_instrument.config import FreshnessRule, Mark, load_keyvars, parse_keyvars
 from rory_instrument.errors import ConfigError
 
 INTEGRATOR = '''\
@@ -110,8 +110,9 @@ CONFIG_ERRORS = [
      "keyvars.yaml:4:19: nodes[0].vars[1]: '2nd' is not a Python identifier"),
     ('var_keyword', NODE + '    vars:\n      - total\n      - class\n',
      "keyvars.yaml:6:9: nodes[0].vars[1]: 'class' is not a Python identifier"),
-    ('var_not_scalar', NODE + '    vars: [total, {count: 1}]\n',
-     'keyvars.yaml:4:19: nodes[0].vars[1]: expected an attribute name'),
+    ('var_not_scalar', NODE + '    vars: [total, [count]]\n',
+     'keyvars.yaml:4:19: nodes[0].vars[1]: expected an attribute name or a mapping with keys '
+     'name, max_age, on_stale'),
     ('var_duplicate', NODE + '    vars: [total, count, total]\n',
      "keyvars.yaml:4:26: nodes[0].vars[2]: duplicate var 'total'"),
     ('unknown_node_key', NODE + '    var: [total]\n',
@@ -191,6 +192,73 @@ CONFIG_ERRORS = [
     ('interval_boolean', NODE + '    vars: [total]\n    checkpoint_interval: true\n',
      "keyvars.yaml:5:26: nodes[0].checkpoint_interval: expected a positive number of "
      "seconds, got 'true'"),
+    # Entries written as mappings, with freshness rules.
+    ('rule_unknown_key', NODE + '    vars: [total, {count: 1}]\n',
+     "keyvars.yaml:4:20: nodes[0].vars[1]: unknown key 'count' (expected: name, max_age, "
+     "on_stale)"),
+    ('rule_unknown_key_block', NODE + '    vars:\n      - total\n      - name: history\n'
+     '        maxage: 5\n',
+     "keyvars.yaml:7:9: nodes[0].vars[1]: unknown key 'maxage' (expected: name, max_age, "
+     "on_stale)"),
+    ('rule_duplicate_key', NODE + '    vars:\n      - name: history\n        max_age: 5\n'
+     '        max_age: 6\n',
+     "keyvars.yaml:7:9: nodes[0].vars[0]: duplicate key 'max_age'"),
+    ('rule_missing_name', NODE + '    vars: [total, {max_age: 5}]\n',
+     "keyvars.yaml:4:19: nodes[0].vars[1]: missing required key 'name'"),
+    ('rule_name_not_identifier', NODE + '    vars: [{name: 2nd, max_age: 5}]\n',
+     "keyvars.yaml:4:19: nodes[0].vars[0].name: '2nd' is not a Python identifier"),
+    ('rule_name_boolean', NODE + '    vars: [{name: true}]\n',
+     'keyvars.yaml:4:19: nodes[0].vars[0].name: expected an attribute name, got the boolean '
+     'true (quote it if it is meant as a name)'),
+    ('rule_max_age_negative', NODE + '    vars:\n      - total\n'
+     '      - {name: history, max_age: -1}\n',
+     "keyvars.yaml:6:34: nodes[0].vars[1].max_age: expected a positive number of seconds, "
+     "got '-1'"),
+    ('rule_max_age_zero', NODE + '    vars: [{name: history, max_age: 0}]\n',
+     "keyvars.yaml:4:37: nodes[0].vars[0].max_age: expected a positive number of seconds, "
+     "got '0'"),
+    ('rule_max_age_quoted', NODE + "    vars: [{name: history, max_age: '5'}]\n",
+     "keyvars.yaml:4:37: nodes[0].vars[0].max_age: expected a positive number of seconds, "
+     "got the string '5'"),
+    ('rule_max_age_nan', NODE + '    vars: [{name: history, max_age: .nan}]\n',
+     "keyvars.yaml:4:37: nodes[0].vars[0].max_age: expected a positive number of seconds, "
+     "got '.nan'"),
+    ('rule_max_age_unit', NODE + '    vars: [{name: history, max_age: 5s}]\n',
+     "keyvars.yaml:4:37: nodes[0].vars[0].max_age: expected a positive number of seconds, "
+     "got '5s'"),
+    ('rule_max_age_list', NODE + '    vars: [{name: history, max_age: [5]}]\n',
+     'keyvars.yaml:4:37: nodes[0].vars[0].max_age: expected a positive number of seconds'),
+    ('rule_on_stale_unknown', NODE + '    vars:\n      - name: history\n        max_age: 5\n'
+     '        on_stale: drop\n',
+     "keyvars.yaml:7:19: nodes[0].vars[0].on_stale: expected 'reset', 'keep' or 'refuse', "
+     "got 'drop'"),
+    ('rule_on_stale_case', NODE + '    vars: [{name: history, max_age: 5, on_stale: Keep}]\n',
+     "keyvars.yaml:4:50: nodes[0].vars[0].on_stale: expected 'reset', 'keep' or 'refuse', "
+     "got 'Keep'"),
+    ('rule_on_stale_without_max_age', NODE + '    vars:\n      - total\n'
+     '      - name: history\n        on_stale: keep\n',
+     'keyvars.yaml:7:9: nodes[0].vars[1].on_stale: needs max_age; without it the variable '
+     'is never stale'),
+    # Duplicates and overlaps count across plain and mapping entries, at the path.
+    ('rule_duplicates_plain', NODE + '    vars: [history, {name: history, max_age: 5}]\n',
+     "keyvars.yaml:4:28: nodes[0].vars[1]: duplicate var 'history'"),
+    ('plain_duplicates_rule', NODE + '    vars: [{name: history, max_age: 5}, total, history]\n',
+     "keyvars.yaml:4:48: nodes[0].vars[2]: duplicate var 'history'"),
+    ('rule_overlaps_plain', NODE + '    vars:\n      - ekf\n      - {name: ekf.P, max_age: 5}\n',
+     "keyvars.yaml:6:16: nodes[0].vars[1]: 'ekf.P' overlaps 'ekf' (vars[0]); list either the "
+     'whole object or parts of it'),
+    ('module_rule_max_age', 'nodes:\n  - file: a.py\n'
+     '    module_vars: [counter, {name: seen, max_age: .inf}]\n',
+     "keyvars.yaml:3:50: nodes[0].module_vars[1].max_age: expected a positive number of "
+     "seconds, got '.inf'"),
+    ('module_rule_on_stale_without_max_age', 'nodes:\n  - file: a.py\n    module_vars:\n'
+     '      - name: counter\n        on_stale: refuse\n',
+     'keyvars.yaml:5:9: nodes[0].module_vars[0].on_stale: needs max_age; without it the '
+     'variable is never stale'),
+    ('module_rule_overlap', 'nodes:\n  - file: a.py\n'
+     '    module_vars: [{name: state.pose, max_age: 1}, state]\n',
+     "keyvars.yaml:3:51: nodes[0].module_vars[1]: 'state' overlaps 'state.pose' "
+     '(module_vars[0]); list either the whole object or parts of it'),
 ]
 
 
@@ -384,6 +452,24 @@ def test_interval_and_replay_are_not_hashed(work: Path,
     assert a != b
 
 
+def test_freshness_rules_are_not_hashed(work: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    (work / 'keyvars.yaml').write_text(GOOD)
+    assert run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'a')[0] == 0
+    (work / 'keyvars.yaml').write_text(GOOD.replace(
+        'history]', '{name: history, max_age: 5, on_stale: keep}]'
+    ))
+    code, out, err = run(capsys, 'src', '--vars', 'keyvars.yaml', '-o', 'b')
+    assert (code, err) == (0, '')
+    assert out == 'instrumented integrator.py:Integrator vars=total,count,history\n'
+    # The manifest file is the same byte for byte; only the decorator gains the rule.
+    a, b = ((work / d / 'rory_manifest.json').read_text() for d in ('a', 'b'))
+    assert a == b
+    a, b = ((work / d / 'integrator.py').read_text() for d in ('a', 'b'))
+    assert b == a.replace(' manifest=', ' freshness=(("history", 5.0, "keep"),), manifest=')
+    assert a != b
+
+
 def test_node_spec_keeps_positions() -> None:
     keyvars = parse_keyvars(
         'nodes:\n  - file: a.py\n    class: A\n    vars: [on, yes]\n'
@@ -427,6 +513,55 @@ def test_new_fields_and_their_positions() -> None:
         'Outer.Inner', ('ekf.P', 'true', 'pid.accu_e'), ('counter',)
     )
     assert both.label == 'counter.py:Outer.Inner'
+
+
+def test_freshness_rules_and_their_positions() -> None:
+    keyvars = parse_keyvars(
+        'nodes:\n'
+        '  - file: a.py\n'
+        '    class: A\n'
+        '    module_vars:\n'
+        '      - {name: counter, max_age: 30, on_stale: refuse}\n'
+        '    vars:\n'
+        '      - total\n'
+        '      - {name: history, max_age: 5.0, on_stale: reset}\n'
+        '      - {name: goal, max_age: 0x1e}\n'
+        '      - {name: pose}\n'
+        '      - name: ekf.P\n'
+        '        on_stale: keep\n'
+        '        max_age: 1e-1\n',
+        'k.yaml',
+    )
+    (spec,) = keyvars.nodes
+    # The paths are plain strings whichever way they were written.
+    assert spec.vars == ('total', 'history', 'goal', 'pose', 'ekf.P')
+    assert spec.module_vars == ('counter',)
+    # Only entries with max_age make a rule; those of vars come first, each in list order.
+    assert spec.freshness == (
+        FreshnessRule('history', 5.0, 'reset', module=False),
+        FreshnessRule('goal', 30.0, 'reset', module=False),
+        FreshnessRule('ekf.P', 0.1, 'keep', module=False),
+        FreshnessRule('counter', 30.0, 'refuse', module=True),
+    )
+    # A mapping entry's own position is its name's, so messages about the path point there.
+    assert spec.mark('vars[1]') == spec.mark('vars[1].name') == Mark(8, 16)
+    assert spec.mark('vars[1].max_age') == Mark(8, 34)
+    assert spec.mark('vars[1].on_stale') == Mark(8, 49)
+    assert spec.mark('vars[4]') == Mark(11, 15)
+    assert spec.mark('vars[4].max_age') == Mark(13, 18)
+    assert spec.mark('module_vars[0].on_stale') == Mark(5, 48)
+    assert spec.mark('vars[2].on_stale') == Mark(2, 5)  # absent: falls back to the node
+
+
+def test_a_mapping_without_max_age_is_a_plain_entry() -> None:
+    plain = parse_keyvars(GOOD, 'k.yaml')
+    mapped = parse_keyvars(
+        GOOD.replace('[total, count, history]', '\n      - total\n      - {name: count}\n'
+                     '      - name: history'),
+        'k.yaml',
+    )
+    assert mapped.nodes == plain.nodes
+    assert mapped.nodes[0].freshness == ()
 
 
 def test_class_without_vars_needs_module_vars() -> None:

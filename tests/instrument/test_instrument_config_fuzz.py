@@ -12,14 +12,15 @@ from rory_instrument.errors import ConfigError
 # Values of the shapes keyvars.yaml is made of, plus the odd ones a hand-edited file gets.
 scalars = (
     st.none() | st.booleans() | st.integers() | st.floats(allow_nan=True)
-    | st.sampled_from(['a.py', 'Node', 'x.y', 'fast', 'paced', '', '..', '1a', 'a b', '/abs.py'])
+    | st.sampled_from(['a.py', 'Node', 'x.y', 'fast', 'paced', '', '..', '1a', 'a b', '/abs.py',
+                       'reset', 'keep', 'refuse'])
     | st.text(max_size=12)
 )
 values = st.recursive(
     scalars,
     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(
         st.sampled_from(['nodes', 'file', 'class', 'vars', 'module_vars', 'checkpoint_interval',
-                         'replay', 'x']) | st.text(max_size=6),
+                         'replay', 'name', 'max_age', 'on_stale', 'x']) | st.text(max_size=6),
         inner, max_size=5),
     max_leaves=20,
 )
@@ -56,7 +57,8 @@ def test_any_text_parses_or_raises_config_error(text: str) -> None:
 @given(st.sampled_from([
     'nodes:\n  - file: a.py\n    class: A\n    vars: [x]\n',
     'nodes:\n  - file: a.py\n    module_vars: [x, y]\n    replay: fast\n',
-]), st.integers(0, 60), st.sampled_from([':', '-', '[', ']', '{', '&a', '*a', '!!python/object',
+    'nodes:\n  - file: a.py\n    class: A\n    vars: [x, {name: y, max_age: 5, on_stale: keep}]\n',
+]), st.integers(0, 80), st.sampled_from([':', '-', '[', ']', '{', '&a', '*a', '!!python/object',
                                          '\t', '\x00', '"', '\ufeff', '%YAML 1.1\n']))
 def test_a_valid_file_mangled_at_any_point_parses_or_raises_config_error(
     base: str, at: int, junk: str

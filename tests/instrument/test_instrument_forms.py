@@ -1,5 +1,5 @@
 """Before/after tests of the forms beyond ``class`` + ``vars``: attribute paths, module vars,
-per-node settings, the module call.
+per-node settings, freshness rules, the module call.
 
 Expected outputs spell every addition out in full; only digests are placeholders: ``<Class>``
 for a class entry, ``<module>`` for the entry without a class, filled in from the hash of the
@@ -10,6 +10,7 @@ for a class entry, ``<module>`` for the entry without a class, filled in from th
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import textwrap
 from dataclasses import dataclass, field
@@ -19,9 +20,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rory_instrument.config import KeyVars, Mark, NodeSpec
+from rory_instrument.config import STALE_ACTIONS, FreshnessRule, KeyVars, Mark, NodeSpec
 from rory_instrument.manifest import manifest_digest
-from rory_instrument.transform import StripRoryTransformer, instrument_source
+from rory_instrument.transform import (
+    CHECKPOINT_GLOBAL_PREFIX,
+    StripRoryTransformer,
+    freshness_argument,
+    instrument_source,
+)
 
 FILE = 'node.py'
 
@@ -39,16 +45,22 @@ class Entry:
     module_vars: tuple[str, ...] = ()
     checkpoint_interval: float | None = None
     replay: str | None = None
+    freshness: tuple[FreshnessRule, ...] = ()
 
     def spec(self, index: int) -> NodeSpec:
         return NodeSpec(
             index, FILE, self.class_name, self.vars, self.checkpoint_interval, self.replay,
-            self.module_vars, marks={'': Mark(2 + 5 * index, 5)},
+            self.module_vars, self.freshness, marks={'': Mark(2 + 5 * index, 5)},
         )
 
     @property
     def placeholder(self) -> str:
         return f'<{self.class_name or "module"}>'
+
+
+def rule(path: str, max_age: float, on_stale: str = 'reset', *, module: bool = False
+         ) -> FreshnessRule:
+    return FreshnessRule(path, max_age, on_stale, module)
 
 
 def keyvars(entries: tuple[Entry, ...]) -> KeyVars:
@@ -577,6 +589,156 @@ CASES = [
         ''',
         (Entry(module_vars=('counter',)), Entry('Integrator', ('total',))),
     ),
+    Case(
+        # Rules of vars and of module vars in one decorator, after the settings; a module
+        # global's key has the checkpoint's `global:` prefix.
+        'freshness_in_decorator',
+        '''
+        from rclpy.node import Node
+
+        counter = 0
+
+
+        class Tracker(Node):
+            def __init__(self):
+                super().__init__('tracker')
+                self.total = 0
+                self.history = []
+                self.goal = None
+        ''',
+        '''
+        from rclpy.node import Node
+        import rory_runtime
+
+        counter = 0
+
+
+        @rory_runtime.checkpointed(vars=("total", "history", "goal"), module_vars=("counter",), replay="fast", freshness=(("history", 5.0, "reset"), ("goal", 30.0, "keep"), ("global:counter", 0.25, "refuse")), manifest="<Tracker>")
+        class Tracker(Node):
+            def __init__(self):
+                super().__init__('tracker')
+                self.total = 0
+                self.history = []
+                self.goal = None
+        ''',
+        (Entry('Tracker', ('total', 'history', 'goal'), ('counter',), replay='fast',
+               freshness=(rule('history', 5.0), rule('goal', 30, 'keep'),
+                          rule('counter', 0.25, 'refuse', module=True))),),
+    ),
+    Case(
+        # One rule: a tuple of one tuple, with its comma.
+        'freshness_in_module_call',
+        COUNTER,
+        COUNTER_AFTER.replace(
+            'manifest=', 'checkpoint_interval=1.0, freshness=(("global:history", 2.5, "keep"),), manifest='
+        ),
+        (Entry(module_vars=('counter', 'history'), checkpoint_interval=1.0,
+               freshness=(rule('history', 2.5, 'keep', module=True),)),),
+    ),
+    Case(
+        # A rule added to a hand-formatted decorator: the arguments are rewritten.
+        'freshness_added_to_existing_decorator',
+        '''
+        import rory_runtime as rr
+        from rclpy.node import Node
+
+
+        @rr.checkpointed(
+            vars=("total",),
+            manifest="sha256:0",
+        )
+        class Integrator(Node):
+            def __init__(self):
+                self.total = 0
+        ''',
+        '''
+        import rory_runtime as rr
+        from rclpy.node import Node
+
+
+        @rr.checkpointed(vars=("total",), freshness=(("total", 1e-05, "reset"),), manifest="<Integrator>")
+        class Integrator(Node):
+            def __init__(self):
+                self.total = 0
+        ''',
+        (Entry('Integrator', ('total',), freshness=(rule('total', 1e-5),)),),
+        stripped='''
+        import rory_runtime as rr
+        from rclpy.node import Node
+
+
+        class Integrator(Node):
+            def __init__(self):
+                self.total = 0
+        ''',
+    ),
+    Case(
+        # A changed rule is swapped in where the old one is, keeping the layout.
+        'freshness_changed_in_place',
+        '''
+        import rclpy
+        import rory_runtime
+
+        counter = 0
+        rory_runtime.checkpoint_module(
+            __name__,
+            vars=("counter",),
+            freshness=(("global:counter", 5.0, "reset"),),
+            manifest="sha256:0",
+        )
+        ''',
+        '''
+        import rclpy
+        import rory_runtime
+
+        counter = 0
+        rory_runtime.checkpoint_module(
+            __name__,
+            vars=("counter",),
+            freshness=(("global:counter", 60.0, "refuse"),),
+            manifest="<module>",
+        )
+        ''',
+        (Entry(module_vars=('counter',), freshness=(rule('counter', 60, 'refuse', module=True),)),),
+        stripped='''
+        import rclpy
+
+        counter = 0
+        ''',
+    ),
+    Case(
+        # The rules removed from keyvars.yaml: the keyword goes too.
+        'freshness_removed',
+        '''
+        import rory_runtime
+        from rclpy.node import Node
+
+
+        @rory_runtime.checkpointed(vars=("total",), freshness=(("total", 5.0, "reset"),), manifest="sha256:0")
+        class Integrator(Node):
+            def __init__(self):
+                self.total = 0
+        ''',
+        '''
+        import rory_runtime
+        from rclpy.node import Node
+
+
+        @rory_runtime.checkpointed(vars=("total",), manifest="<Integrator>")
+        class Integrator(Node):
+            def __init__(self):
+                self.total = 0
+        ''',
+        (Entry('Integrator', ('total',)),),
+        stripped='''
+        from rclpy.node import Node
+
+
+        class Integrator(Node):
+            def __init__(self):
+                self.total = 0
+        ''',
+    ),
 ]
 
 
@@ -610,6 +772,58 @@ def test_settings_do_not_change_the_digest() -> None:
     )
     assert plain.classes[0].manifest == tuned.classes[0].manifest
     assert plain.code != tuned.code
+
+
+def test_freshness_rules_do_not_change_the_digest() -> None:
+    plain = instrument_source(COUNTER, keyvars((Entry(module_vars=('counter',)),)), FILE)
+    ruled = instrument_source(
+        COUNTER,
+        keyvars((Entry(module_vars=('counter',), freshness=(rule('counter', 5.0, module=True),)),)),
+        FILE,
+    )
+    assert plain.classes[0].manifest == ruled.classes[0].manifest
+    assert plain.code != ruled.code
+    # Without rules there is no keyword at all.
+    assert b'freshness=' not in plain.code
+
+
+def test_checkpoint_key_prefix_is_the_runtimes() -> None:
+    from rory_runtime.state import GLOBAL_PREFIX
+
+    assert CHECKPOINT_GLOBAL_PREFIX == GLOBAL_PREFIX
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    ages=st.lists(
+        st.floats(min_value=5e-324, allow_nan=False, allow_infinity=False), min_size=1,
+        max_size=3,
+    ),
+    actions=st.lists(st.sampled_from(STALE_ACTIONS), min_size=3, max_size=3),
+    module=st.booleans(),
+)
+def test_freshness_keyword_reads_back(ages: list[float], actions: list[str],
+                                      module: bool) -> None:
+    names = ('a', 'b', 'c')[: len(ages)]
+    rules = tuple(
+        rule(n, age, a, module=module)
+        for n, age, a in zip(names, ages, actions[: len(ages)], strict=True)
+    )
+    entry = (Entry(module_vars=names, freshness=rules) if module
+             else Entry('C', names, freshness=rules))
+    source = (
+        'from rclpy.node import Node\na = b = c = 0\n\n\nclass C(Node):\n'
+        '    def f(self):\n        self.a = self.b = self.c = 1\n'
+    )
+    once = instrument(source, (entry,))
+    assert instrument(once, (entry,)) == once
+    # The keyword holds exactly the runtime's value: the floats come back bit for bit.
+    call = next(
+        node for node in ast.walk(ast.parse(once))
+        if isinstance(node, ast.Call) and any(k.arg == 'freshness' for k in node.keywords)
+    )
+    (keyword,) = (k for k in call.keywords if k.arg == 'freshness')
+    assert ast.literal_eval(keyword.value) == freshness_argument(rules)
 
 
 def test_module_vars_change_the_digest() -> None:

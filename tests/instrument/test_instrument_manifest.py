@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 
+from rory_instrument.config import parse_keyvars
 from rory_instrument.manifest import ManifestEntry, manifest_digest, render_manifest
 
 SHA = 'ab' * 32
@@ -90,3 +91,26 @@ def test_module_vars_in_the_digest_and_the_file() -> None:
          'source_sha256': SHA, 'manifest': 'sha256:2', 'checkpoint_interval': 1.0,
          'replay': 'fast'},
     ]
+
+
+def test_freshness_rules_are_not_in_the_digest() -> None:
+    # The same paths, plain and as mappings with and without rules: one digest, so that
+    # adding or tuning a rule keeps the checkpoints already written.
+    node = 'nodes:\n  - file: a.py\n    class: A\n'
+    texts = [
+        node + '    vars: [total, history]\n    module_vars: [counter]\n',
+        node + '    vars: [total, {name: history}]\n    module_vars: [{name: counter}]\n',
+        node + '    vars: [total, {name: history, max_age: 5}]\n'
+        '    module_vars: [{name: counter, max_age: 30, on_stale: refuse}]\n',
+        node + '    vars: [total, {name: history, max_age: 0.5, on_stale: keep}]\n'
+        '    module_vars: [counter]\n',
+    ]
+    specs = [parse_keyvars(text, 'keyvars.yaml').nodes[0] for text in texts]
+    assert len({spec.freshness for spec in specs}) == 3
+    digests = {
+        manifest_digest(file=s.file, class_name=s.class_name, vars=s.vars, source_sha256=SHA,
+                        module_vars=s.module_vars)
+        for s in specs
+    }
+    assert digests == {manifest_digest(file='a.py', class_name='A', vars=('total', 'history'),
+                                       source_sha256=SHA, module_vars=('counter',))}

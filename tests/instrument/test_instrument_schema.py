@@ -19,7 +19,7 @@ import jsonschema
 import pytest
 import yaml
 
-from rory_instrument.config import SCHEMA_NAME, keyvars_schema, parse_keyvars
+from rory_instrument.config import SCHEMA_NAME, STALE_ACTIONS, keyvars_schema, parse_keyvars
 from rory_instrument.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -101,6 +101,16 @@ VALID = [
     ('two_nodes', C + '    vars: [x]\n  - file: b.py\n    module_vars: [y]\n'),
     ('same_file_module_and_class', C + '    vars: [x]\n  - file: a.py\n    module_vars: [y]\n'),
     ('comments', '# state\nnodes:  # all\n  - file: a.py  # here\n    class: A\n    vars: [x]\n'),
+    # Entries written as mappings, with freshness rules.
+    ('rules', C + '    vars: [total, {name: history, max_age: 5.0, on_stale: reset}]\n'),
+    ('rules_block', C + '    vars:\n      - name: goal\n        max_age: 30\n'
+     '        on_stale: refuse\n      - total\n'),
+    ('rule_default_action', C + '    vars: [{name: goal, max_age: 30}]\n'),
+    ('rule_keep', C + '    vars: [{name: goal, max_age: 1e-3, on_stale: keep}]\n'),
+    ('rule_name_only', C + '    vars: [{name: pose}, ekf.P]\n'),
+    ('rule_dotted_name', C + '    vars: [{name: ekf.P, max_age: 0x10}]\n'),
+    ('rule_yaml11_name', C + '    vars: [{name: on, max_age: 1}]\n'),
+    ('rule_module_vars', N + '    module_vars: [n, {name: seen, max_age: 2, on_stale: keep}]\n'),
 ]
 
 INVALID = [
@@ -153,6 +163,25 @@ INVALID = [
     ('replay_unknown', C + '    vars: [x]\n    replay: slow\n'),
     ('replay_boolean', C + '    vars: [x]\n    replay: true\n'),
     ('replay_list', C + '    vars: [x]\n    replay: [fast]\n'),
+    ('rule_unknown_key', C + '    vars: [{name: x, maxage: 5}]\n'),
+    ('rule_no_name', C + '    vars: [{max_age: 5}]\n'),
+    ('rule_empty', C + '    vars: [{}]\n'),
+    ('rule_as_list', C + '    vars: [[x, 5]]\n'),
+    ('rule_name_number', C + '    vars: [{name: 1}]\n'),
+    ('rule_name_keyword', C + '    vars: [{name: a.class, max_age: 1}]\n'),
+    ('rule_name_list', C + '    vars: [{name: [x]}]\n'),
+    ('rule_on_stale_without_max_age', C + '    vars: [{name: x, on_stale: keep}]\n'),
+    ('rule_max_age_zero', C + '    vars: [{name: x, max_age: 0}]\n'),
+    ('rule_max_age_negative', C + '    vars: [{name: x, max_age: -5}]\n'),
+    ('rule_max_age_string', C + "    vars: [{name: x, max_age: '5'}]\n"),
+    ('rule_max_age_unit', C + '    vars: [{name: x, max_age: 5s}]\n'),
+    ('rule_max_age_inf', C + '    vars: [{name: x, max_age: .inf}]\n'),
+    ('rule_max_age_nan', C + '    vars: [{name: x, max_age: .nan}]\n'),
+    ('rule_max_age_boolean', C + '    vars: [{name: x, max_age: true}]\n'),
+    ('rule_on_stale_unknown', C + '    vars: [{name: x, max_age: 5, on_stale: drop}]\n'),
+    ('rule_on_stale_case', C + '    vars: [{name: x, max_age: 5, on_stale: RESET}]\n'),
+    ('rule_on_stale_null', C + '    vars: [{name: x, max_age: 5, on_stale: null}]\n'),
+    ('module_rule_unknown_key', N + '    module_vars: [{name: n, max_age: 5, stale: keep}]\n'),
 ]
 
 # Rules a JSON Schema cannot say: the schema accepts these, the parser refuses them.
@@ -164,6 +193,10 @@ PARSER_ONLY = [
     ('module_path_inside_listed', N + '    module_vars: [state.pose, state]\n'),
     # The schema admits any non-ASCII letter-like character; Python's rules are finer.
     ('non_identifier_unicode', C + '    vars: [price€]\n'),
+    # uniqueItems compares whole items: a path written both ways is two different items.
+    ('rule_duplicates_plain', C + '    vars: [x, {name: x, max_age: 5}]\n'),
+    ('rule_overlaps_plain', C + '    vars: [ekf, {name: ekf.P, max_age: 5}]\n'),
+    ('rule_duplicate_key', C + '    vars: [{name: x, max_age: 5, max_age: 6}]\n'),
 ]
 
 
@@ -203,8 +236,10 @@ def test_schema_documents_every_field() -> None:
     assert set(node['properties']) == {
         'file', 'class', 'vars', 'module_vars', 'checkpoint_interval', 'replay'
     }
+    rule = schema['$defs']['pathWithRule']
+    assert set(rule['properties']) == {'name', 'max_age', 'on_stale'}
     described = [schema, schema['properties']['nodes'], *schema['$defs'].values(),
-                 *node['properties'].values()]
+                 *node['properties'].values(), *rule['properties'].values()]
     for part in described:
         assert part.get('title') and part.get('description'), part
 
@@ -230,3 +265,12 @@ def test_schema_refuses_an_infinite_interval() -> None:
     node = {'file': 'a.py', 'class': 'A', 'vars': ['x']}
     assert validator.is_valid({'nodes': [{**node, 'checkpoint_interval': 1e308}]})
     assert not validator.is_valid({'nodes': [{**node, 'checkpoint_interval': math.inf}]})
+    for max_age, valid in ((1e308, True), (math.inf, False)):
+        entry = {**node, 'vars': [{'name': 'x', 'max_age': max_age}]}
+        assert validator.is_valid({'nodes': [entry]}) == valid
+
+
+def test_schema_and_parser_agree_on_the_actions() -> None:
+    on_stale = keyvars_schema()['$defs']['pathWithRule']['properties']['on_stale']
+    assert tuple(on_stale['enum']) == STALE_ACTIONS
+    assert on_stale['default'] == STALE_ACTIONS[0]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -20,11 +21,21 @@ _BASE = int(os.environ.get('RORY_TEST_DOMAIN_BASE', '10'))
 _PER_WORKER = int(os.environ.get('RORY_TEST_DOMAIN_SPAN', '30'))
 
 
+def _domain(worker_id: str) -> int:
+    slot = 0 if worker_id == 'master' else int(worker_id.removeprefix('gw')) + 1
+    return _BASE + slot * _PER_WORKER + next(_next) % _PER_WORKER
+
+
 @pytest.fixture
 def ros_domain(worker_id: str) -> int:
     """A ROS domain id no other test of this session uses."""
-    slot = 0 if worker_id == 'master' else int(worker_id.removeprefix('gw')) + 1
-    return _BASE + slot * _PER_WORKER + next(_next) % _PER_WORKER
+    return _domain(worker_id)
+
+
+@pytest.fixture
+def more_ros_domains(worker_id: str) -> Callable[[], int]:
+    """Further domain ids, one a call, for a test that runs several ROS graphs at once."""
+    return lambda: _domain(worker_id)
 
 
 # Tests that run the MuJoCo simulator with a ROS stack in real time. Two of them side by side

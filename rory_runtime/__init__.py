@@ -26,6 +26,7 @@ def checkpointed(
     module_vars: tuple[str, ...] = (),
     checkpoint_interval: float | None = None,
     replay: str | None = None,
+    freshness: tuple[tuple[str, float, str], ...] = (),
 ) -> Callable[[C], C]:
     """Mark a node class's key variables for checkpointing (see :mod:`rory_runtime.attach`)."""
     if not os.environ.get(ENV_NODE):
@@ -38,6 +39,7 @@ def checkpointed(
         module_vars=module_vars,
         checkpoint_interval=checkpoint_interval,
         replay=replay,
+        freshness=freshness,
     )
 
 
@@ -48,6 +50,7 @@ def checkpoint_module(
     manifest: str,
     checkpoint_interval: float | None = None,
     replay: str | None = None,
+    freshness: tuple[tuple[str, float, str], ...] = (),
 ) -> None:
     """Mark a function-style node's module globals as its state (see :mod:`.attach`)."""
     if not os.environ.get(ENV_NODE):
@@ -60,6 +63,7 @@ def checkpoint_module(
         manifest=manifest,
         checkpoint_interval=checkpoint_interval,
         replay=replay,
+        freshness=freshness,
     )
 
 

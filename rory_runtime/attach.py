@@ -65,7 +65,15 @@ from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from std_msgs.msg import String, UInt8MultiArray
 
-from . import codec, event_clock, node_lifecycle, node_parameters, node_services, protocol
+from . import (
+    codec,
+    event_clock,
+    freshness,
+    node_lifecycle,
+    node_parameters,
+    node_services,
+    protocol,
+)
 from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
 from .event_clock import EventClock, Reading
 from .inflight import InFlightSlot, slot_path
@@ -74,6 +82,7 @@ from .msgtypes import type_name_of
 from .protocol import (
     DEFAULT_CHANNEL,
     ENV_CHANNEL,
+    ENV_GATED,
     ENV_INCARNATION,
     ENV_INTERVAL,
     ENV_METHOD,
@@ -101,6 +110,7 @@ T = TypeVar('T')
 
 DEFAULT_INTERVAL = 2.0
 BEAT_PERIOD = 0.2  # seconds between heartbeats (the supervisor's hang_timeout is far longer)
+SIM_CLOCK_WAIT = 5.0  # seconds a recovery under use_sim_time waits for /clock to judge ages
 
 
 # RORY's own status publisher and shadow subscription take no QoS event handlers: rclpy gives
@@ -137,6 +147,7 @@ class RuntimeEnv:
     quarantined: frozenset[tuple[str, MessageId]] = frozenset()
     secret: bytes | None = None  # the run's key: envelopes and statuses are signed with it
     channel: str = DEFAULT_CHANNEL  # the namespace of its two topics with the supervisor
+    gated: bool = False  # a release gate: outputs stay muted after release until OPEN
 
     @classmethod
     def from_environ(cls, environ: dict[str, str] | None = None) -> RuntimeEnv | None:
@@ -163,6 +174,7 @@ class RuntimeEnv:
                 ),
                 secret=bytes.fromhex(env[ENV_SECRET]) if env.get(ENV_SECRET) else None,
                 channel=env.get(ENV_CHANNEL) or DEFAULT_CHANNEL,
+                gated=env.get(ENV_GATED) == '1',
             )
         except (KeyError, ValueError, TypeError) as err:
             raise RoryError(f'{ENV_NODE} is set but the environment is bad: {err}') from None
@@ -175,6 +187,7 @@ def checkpointed(
     module_vars: tuple[str, ...] = (),
     checkpoint_interval: float | None = None,
     replay: str | None = None,
+    freshness: tuple[tuple[str, float, str], ...] = (),
 ) -> Callable[[N], N]:
     """Class decorator that ``rory-instrument`` puts on a node class.
 
@@ -185,6 +198,7 @@ def checkpointed(
         module_vars: Paths of module globals that are state too.
         checkpoint_interval: Seconds between checkpoints, unless the supervisor sets it.
         replay: 'paced' or 'fast', unless the supervisor sets it.
+        freshness: ``(key, max_age, on_stale)`` per variable with a rule (freshness.py).
 
     Returns:
         The decorator. Unsupervised, it returns the class unchanged.
@@ -195,7 +209,8 @@ def checkpointed(
         if env is None:
             return cls
         spec = CheckpointSpec(
-            tuple(vars), manifest, tuple(module_vars), cls.__module__, checkpoint_interval, replay
+            tuple(vars), manifest, tuple(module_vars), cls.__module__, checkpoint_interval, replay,
+            _rules(freshness),
         )
         _install(cls, spec, env)
         return cls
@@ -210,6 +225,7 @@ def checkpoint_module(
     manifest: str,
     checkpoint_interval: float | None = None,
     replay: str | None = None,
+    freshness: tuple[tuple[str, float, str], ...] = (),
 ) -> None:
     """For nodes written as functions: the module's globals ``vars`` are the node's state.
 
@@ -219,8 +235,13 @@ def checkpoint_module(
     env = RuntimeEnv.from_environ()
     if env is None:
         return
-    spec = CheckpointSpec((), manifest, tuple(vars), module, checkpoint_interval, replay)
+    spec = CheckpointSpec((), manifest, tuple(vars), module, checkpoint_interval, replay,
+                          _rules(freshness))
     _watch_for_node(spec, env)
+
+
+def _rules(entries: tuple[tuple[str, float, str], ...]) -> tuple[freshness.Rule, ...]:
+    return freshness.rules_from(entries)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -448,6 +469,8 @@ class NodeRuntime:
         self.lock = threading.RLock()
         self.released = False
         self.released_ns = 0
+        # Outputs go out: at release, or under a release gate when the supervisor says OPEN.
+        self.outputs_open = False
         self.inputs: dict[str, _Input] = {}
         self.windows: dict[str, _Window] = {}
         self.shadow_topics: set[str] = set()
@@ -559,7 +582,7 @@ class NodeRuntime:
         publish = pub.publish
 
         def gated_publish(msg: Any) -> None:
-            if self.released:
+            if self.outputs_open:
                 publish(msg)
             else:
                 self.stats['muted'] += 1
@@ -771,7 +794,7 @@ class NodeRuntime:
             restored = self._restore(refused)
         restore_ms = (time.perf_counter() - began) * 1000.0
         self._next_seq = self.checkpoints.next_seq()
-        if self.method.logs:
+        if self.method.logs or self.env.gated:
             on_envelope: Any = self._on_envelope  # rclpy's annotation omits (msg, info)
             self._shadow_sub = Node.create_subscription(
                 self.node,
@@ -803,6 +826,10 @@ class NodeRuntime:
             dds_transports=os.environ.get('FASTDDS_BUILTIN_TRANSPORTS'),
         )
         self._hello_sent = True
+        if restored is not None and restored['freshness']['refused']:
+            # A stale variable whose rule is refuse: the node must not run on what it has;
+            # the supervisor ends this process and holds the safe state.
+            return
         if not self.method.logs:
             # restart and checkpoint have nothing to replay: release right away.
             self._release(self.segments.next_number())
@@ -822,6 +849,10 @@ class NodeRuntime:
             )
             if ckpt is None:
                 return None
+            verdict = self._judge(ckpt)
+            if verdict.refused:
+                return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns,
+                        'parameters': [], 'lifecycle': None, 'freshness': verdict.to_json()}
             try:
                 with self.lock:
                     # Parameters first: their callbacks may set attributes; the key variables
@@ -832,7 +863,8 @@ class NodeRuntime:
                     lifecycle_error = node_lifecycle.restore(self.node, ckpt.lifecycle)
                     if lifecycle_error is not None:
                         self._error(lifecycle_error)
-                    write_state(self.spec, self.node, codec.decode_vars(ckpt.vars_blob))
+                    write_state(self.spec, self.node, codec.decode_vars(ckpt.vars_blob),
+                                skip=frozenset(verdict.reset))
             except CodecError as err:
                 # Checksum was fine but the payload is not ours: set it aside, try the older one.
                 on_refused(CheckpointError(self.checkpoints.path(ckpt.seq), str(err)))
@@ -845,7 +877,52 @@ class NodeRuntime:
                 self.previous_cut = ckpt.cut
             return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns,
                     'parameters': restored_parameters,
-                    'lifecycle': node_lifecycle.state_of(self.node) or None}
+                    'lifecycle': node_lifecycle.state_of(self.node) or None,
+                    'freshness': verdict.to_json()}
+
+    def _judge(self, ckpt: Checkpoint) -> freshness.Verdict:
+        """Which of the checkpoint's variables are fresh enough to restore (freshness.py)."""
+        now = self._clock_reading()
+        if now.sim and now.ns <= 0 and self.spec.freshness:
+            # Simulation time that has not ticked in this process yet: wait for /clock.
+            now = freshness.ClockReading(self._first_sim_clock_ns(SIM_CLOCK_WAIT), True)
+        taken = freshness.ClockReading(ckpt.clock_ns, ckpt.sim_time) if ckpt.clock_ns else None
+        if taken is None and not now.sim:  # a checkpoint from before the clock was kept
+            taken = freshness.ClockReading(ckpt.created_ns, False)
+        return freshness.judge(self.spec.keys(), self.spec.freshness, taken, now)
+
+    def _clock_reading(self) -> freshness.ClockReading:
+        """The node's own ROS clock, read live (never a replayed reading)."""
+        assert self.node is not None
+        clock = self.node.get_clock()
+        sim = bool(getattr(clock, 'ros_time_is_active', False))
+        return freshness.ClockReading(int(event_clock.original_now(clock).nanoseconds), sim)
+
+    def _first_sim_clock_ns(self, timeout: float) -> int:
+        """The time of the next /clock message, 0 if none comes within ``timeout``."""
+        assert self.node is not None
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock as ClockMsg
+
+        # RORY's own reader (not adopted as an input), as rclpy's TimeSource subscribes.
+        sub = Node.create_subscription(
+            self.node, ClockMsg, '/clock', lambda _msg: None,
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT),
+            event_callbacks=_without_events_sub())
+        try:
+            wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.node.context.handle)
+            wait_set.clear_entities()
+            wait_set.add_subscription(sub.handle)
+            wait_set.wait(int(timeout * 1e9))
+            if sub.handle.pointer in wait_set.get_ready_entities('subscription'):
+                taken = sub.handle.take_message(ClockMsg, False)
+                if taken is not None:
+                    stamp = taken[0].clock
+                    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+            return 0
+        finally:
+            self.node.destroy_subscription(sub)
 
     def _restore_parameters(self, data: bytes) -> list[str]:
         """Set the checkpoint's parameter values that differ from this process's."""
@@ -877,8 +954,16 @@ class NodeRuntime:
             self._status(StatusKind.SYNCED, nonce=envelope.nonce, live_publishers=counts)
         elif isinstance(envelope, protocol.Msg):
             self._from_shadow(envelope)
+        elif isinstance(envelope, protocol.Open):
+            self._open_outputs()
         else:
             self._release(envelope.next_segment)
+
+    def _open_outputs(self) -> None:
+        """The release gate opened: what the node publishes from now on goes out."""
+        if self.released and not self.outputs_open:
+            self.outputs_open = True
+            self._status(StatusKind.OPENED, muted=self.stats['muted'])
 
     def _is_quarantined(self, topic: str, ident: MessageId) -> bool:
         # A poison message the supervisor set aside: never applied again, by replay or by a
@@ -1070,6 +1155,7 @@ class NodeRuntime:
         not taken from the shadow topic (all of them after a fresh start)."""
         self.released = True
         self.released_ns = time.time_ns()
+        self.outputs_open = not self.env.gated
         self.next_segment = max(self.next_segment, next_segment)
         self._drain_pending([t for t in self.inputs if t not in self.shadow_topics])
 
@@ -1176,13 +1262,13 @@ class NodeRuntime:
         topic handed over to its live reader, no relayed message waiting for a subscription.
 
         Until a crash it would only lengthen every executor wait of the node (a subscription
-        and its place in the wait set); the supervisor sends a process nothing after that, and
-        a recovered process makes its own. Called from the periodic tick, never from the
-        subscription's own callback.
+        and its place in the wait set); the supervisor sends a process nothing after that but
+        a release gate's OPEN, and a recovered process makes its own. Called from the periodic
+        tick, never from the subscription's own callback.
         """
         if (self._shadow_sub is None or not self.released or self.shadow_topics
-                or self.orphans or self.node is None):
-            return
+                or self.orphans or self.node is None or not self.outputs_open):
+            return  # (outputs still muted: the release gate's OPEN comes on it)
         Node.destroy_subscription(self.node, self._shadow_sub)
         self._shadow_sub = None
 
@@ -1219,6 +1305,7 @@ class NodeRuntime:
             windows = {topic: w.snapshot() for topic, w in self.windows.items()}
             parameters = node_parameters.snapshot(self.node)
             lifecycle = node_lifecycle.state_of(self.node)
+            taken_on = self._clock_reading()
             prune_through, self.previous_cut = self.previous_cut, cut
             seq, self._next_seq = self._next_seq, self._next_seq + 1
         stall_ms = (time.perf_counter() - began) * 1000.0
@@ -1246,6 +1333,9 @@ class NodeRuntime:
                 vars_blob=blob,
                 parameters=parameters,
                 lifecycle=lifecycle,
+                clock_ns=max(taken_on.ns, 0),
+                sim_time=taken_on.sim,
+                freshness=tuple((r.key, r.max_age, r.on_stale) for r in self.spec.freshness),
             )
             try:
                 self.checkpoints.write(ckpt)

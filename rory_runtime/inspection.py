@@ -18,6 +18,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -205,6 +206,29 @@ def _when(ns: int) -> str:
     return datetime.fromtimestamp(ns / 1e9).isoformat(sep=' ', timespec='milliseconds')
 
 
+def freshness_lines(ckpt: Checkpoint, now_ns: int) -> list[str]:
+    """Each variable's age and rule (freshness.py), as a recovery now would judge it on the
+    system clock; under simulation time only the node knows the clock it judges by."""
+    age_s = (now_ns - ckpt.created_ns) / 1e9
+    rules = {key: (max_age, on_stale) for key, max_age, on_stale in ckpt.freshness}
+    try:
+        names = list(variable_kinds(ckpt.vars_blob))
+    except (CodecError, ValueError):
+        names = list(rules)
+    sim = (f'; taken at {ckpt.clock_ns / 1e9:.3f} s of simulation time, the clock a node under '
+           'use_sim_time judges it by') if ckpt.sim_time else ''
+    lines = [f'age {age_s:.1f} s{sim}']
+    for name in names:
+        if name not in rules:
+            lines.append(f'{name}: age {age_s:.1f} s, no rule (always restored)')
+            continue
+        max_age, on_stale = rules[name]
+        verdict = ('stale' if age_s > max_age else 'fresh') if not ckpt.sim_time else 'see above'
+        lines.append(f'{name}: age {age_s:.1f} s, max_age {max_age:g} s, on_stale {on_stale}: '
+                     f'{verdict}')
+    return lines
+
+
 def _size(n: float) -> str:
     for unit in ('B', 'kB', 'MB', 'GB'):
         if n < 1000 or unit == 'GB':
@@ -262,6 +286,7 @@ def listing(store: Path, out: TextIO, only: str | None = None) -> None:
         print(f'{store}: no node has checkpoints or logs here', file=out)
         return
     states = _last_states(store)
+    now_ns = time.time_ns()
     for node in nodes:
         print(f'node {node}' + (f' (last state {states[node]})' if node in states else ''),
               file=out)
@@ -281,8 +306,9 @@ def listing(store: Path, out: TextIO, only: str | None = None) -> None:
             except (CodecError, ValueError) as err:
                 print(f'      variables unreadable: {err}', file=out)
                 continue
+            ages = dict(line.split(': ', 1) for line in freshness_lines(ckpt, now_ns)[1:])
             for name, kind in kinds.items():
-                print(f'      {name}: {kind}', file=out)
+                print(f'      {name}: {kind}; {ages.get(name, "")}'.rstrip('; '), file=out)
         lines = list(_segments(store, node))
         print(f'  log segments: {len(lines)}', file=out)
         for line in lines:
@@ -318,6 +344,10 @@ def show_checkpoint(store: Path, node: str, which: str, out: TextIO) -> None:
           f'manifest {ckpt.manifest}, {_size(len(ckpt.vars_blob))} of variables', file=out)
     for topic, idents in ckpt.windows.items():
         print(f'  window {topic}: {len(idents)} message identities', file=out)
+    head, *per_variable = freshness_lines(ckpt, time.time_ns())
+    print(f'  {head}', file=out)
+    for line in per_variable:
+        print(f'    {line}', file=out)
     values, note = decode_for_display(ckpt.vars_blob)
     if note:
         print(f'  ({note})', file=out)

@@ -23,6 +23,7 @@ Envelope layout (little endian), inside the ``data`` field of the UInt8MultiArra
     SYNC     nonce u64                      path check: the node answers with a SYNCED status
     MSG      flags u8 | recv_ns i64 | source_ns i64 | seq u32 | topic_len u16 | topic | cdr
     RELEASE  next_segment u64 | delivered u64
+    OPEN     (no body)                      the release gate opened: unmute the outputs
 
 A MSG with ``FLAG_RELAY`` was recorded after RELEASE: the node logs it when it applies it,
 because it is not in any sealed log segment.
@@ -58,6 +59,9 @@ ENV_INCARNATION: Final = 'RORY_INCARNATION'
 ENV_METHOD: Final = 'RORY_METHOD'
 ENV_MODE: Final = 'RORY_MODE'
 ENV_INTERVAL: Final = 'RORY_CHECKPOINT_INTERVAL'
+# Set ('1') for a recovering process of a node with a release gate: it goes live but keeps its
+# outputs muted until an OPEN envelope (docs/architecture.md, "The release gate").
+ENV_GATED: Final = 'RORY_RELEASE_GATE'
 ENV_QUARANTINE: Final = 'RORY_QUARANTINE'  # JSON [[topic, source_ns, seq], ...] to skip
 # A key the supervisor draws for each run and gives its nodes through the environment, never
 # over DDS: envelopes and status messages carry an HMAC of it, so another participant on the
@@ -199,7 +203,8 @@ class StatusKind(enum.StrEnum):
 
     HELLO = 'hello'  # started; carries inputs, restore result
     SYNCED = 'synced'  # answered a SYNC: the shadow path works both ways
-    RELEASED = 'released'  # outputs unmuted, timers running
+    RELEASED = 'released'  # outputs unmuted (muted still, under a release gate), timers running
+    OPENED = 'opened'  # the release gate opened: outputs unmuted
     CHECKPOINT = 'checkpoint'  # a checkpoint was written
     SWITCHED = 'switched'  # a topic is now taken from the live subscription
     INPUTS = 'inputs'  # a subscription made after HELLO (e.g. in on_configure): every input
@@ -283,6 +288,7 @@ class EnvelopeKind(enum.IntEnum):
     SYNC = 1
     MSG = 2
     RELEASE = 3
+    OPEN = 4
 
 
 @dataclass(frozen=True, slots=True)
@@ -320,7 +326,14 @@ class Release:
     delivered: int
 
 
-Envelope = Sync | Msg | Release
+@dataclass(frozen=True, slots=True)
+class Open:
+    """The node's release gate opened: unmute its outputs."""
+
+    incarnation: int
+
+
+Envelope = Sync | Msg | Release | Open
 
 
 def _wrap(payload: bytes) -> bytes:
@@ -354,6 +367,11 @@ def pack_release(incarnation: int, next_segment: int, delivered: int) -> bytes:
     """Serialized UInt8MultiArray carrying a RELEASE."""
     head = _HEAD.pack(_MAGIC, _VERSION, EnvelopeKind.RELEASE, incarnation)
     return _wrap(head + _RELEASE.pack(next_segment, delivered))
+
+
+def pack_open(incarnation: int) -> bytes:
+    """Serialized UInt8MultiArray carrying an OPEN."""
+    return _wrap(_HEAD.pack(_MAGIC, _VERSION, EnvelopeKind.OPEN, incarnation))
 
 
 def sign(raw: bytes, key: bytes) -> bytes:
@@ -432,6 +450,8 @@ def unpack(raw: bytes, key: bytes | None = None) -> Envelope:
         if kind == EnvelopeKind.RELEASE:
             next_segment, delivered = _RELEASE.unpack_from(view, off)
             return Release(incarnation, next_segment, delivered)
+        if kind == EnvelopeKind.OPEN:
+            return Open(incarnation)
     except (struct.error, UnicodeDecodeError) as err:
         raise ProtocolError(f'malformed envelope of kind {kind}: {err}') from None
     raise ProtocolError(f'unknown envelope kind {kind}')

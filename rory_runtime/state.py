@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .errors import CodecError
+from .freshness import Rule
 
 GLOBAL_PREFIX = 'global:'
 
@@ -31,6 +32,7 @@ class CheckpointSpec:
     module: str | None = None  # whose globals module_vars name
     checkpoint_interval: float | None = None
     replay: str | None = None
+    freshness: tuple[Rule, ...] = ()  # keyvars.yaml's max_age / on_stale per variable
 
     def keys(self) -> tuple[str, ...]:
         """The names this node's checkpoints store its variables under."""
@@ -91,8 +93,10 @@ def read_state(spec: CheckpointSpec, node: object) -> dict[str, Any]:
     return values
 
 
-def write_state(spec: CheckpointSpec, node: object, values: Mapping[str, Any]) -> None:
-    """Put restored values back where they were read from.
+def write_state(spec: CheckpointSpec, node: object, values: Mapping[str, Any],
+                skip: frozenset[str] = frozenset()) -> None:
+    """Put restored values back where they were read from; the keys in ``skip`` keep what
+    the node has (a stale variable reset, freshness.py).
 
     Raises:
         CodecError: ``values`` does not hold exactly this node's keys, or a path's parent
@@ -104,6 +108,8 @@ def write_state(spec: CheckpointSpec, node: object, values: Mapping[str, Any]) -
             f'holds variables {sorted(values)}, the node has {sorted(expected)}'
         )
     for key, path, root in _roots(spec, node):
+        if key in skip:
+            continue
         *parents, leaf = path.split('.')
         obj = root
         for segment in parents:

@@ -9,7 +9,8 @@ File format, all integers little endian::
     8       2     u16 format version (1)
     10      4     u32 header length H
     14      H     header: msgpack map of every Checkpoint field except vars_blob (and
-                  parameters and lifecycle when empty), plus
+                  parameters, lifecycle, clock_ns with sim_time, and freshness when empty
+                  or 0), plus
                   'vars_len' (the length of vars_blob)
     14+H    V     vars_blob, opaque here (codec.encode_vars output)
     14+H+V  32    SHA-256 over all bytes before it
@@ -71,6 +72,11 @@ class Checkpoint:
         parameters: The node's parameters, a serialized ``rcl_interfaces/msg/ParameterEvent``
             (``node_parameters.py``); empty in checkpoints from before they were kept.
         lifecycle: A lifecycle node's primary state (``'active'``, ...); empty for other nodes.
+        clock_ns: The node's ROS clock when taken (``freshness.py`` counts ages on it); 0 in
+            checkpoints from before it was kept.
+        sim_time: Whether that clock was simulation time (``use_sim_time``).
+        freshness: The node's freshness rules when taken, ``(key, max_age, on_stale)`` each,
+            for ``rory inspect`` (the node judges by the rules its code has now).
 
     """
 
@@ -85,6 +91,9 @@ class Checkpoint:
     vars_blob: bytes
     parameters: bytes = b''
     lifecycle: str = ''
+    clock_ns: int = 0
+    sim_time: bool = False
+    freshness: tuple[tuple[str, float, str], ...] = ()
 
 
 class CheckpointStore:
@@ -313,6 +322,11 @@ def serialize(ckpt: Checkpoint, path: Path | str = '<memory>') -> bytes:
         header['parameters'] = ckpt.parameters
     if ckpt.lifecycle:
         header['lifecycle'] = ckpt.lifecycle
+    if ckpt.clock_ns:
+        header['clock_ns'] = ckpt.clock_ns
+        header['sim_time'] = ckpt.sim_time
+    if ckpt.freshness:
+        header['freshness'] = [list(rule) for rule in ckpt.freshness]
     packed: bytes = msgpack.packb(header, use_bin_type=True)
     body = b''.join((_PREFIX.pack(MAGIC, FORMAT_VERSION, len(packed)), packed, ckpt.vars_blob))
     return body + hashlib.sha256(body).digest()
@@ -399,7 +413,25 @@ def _checkpoint_from_header(
         vars_blob=vars_blob,
         parameters=_field_bytes(header, 'parameters', path),
         lifecycle=_field_str(header, 'lifecycle', path) if 'lifecycle' in header else '',
+        clock_ns=_field_int(header, 'clock_ns', path) if 'clock_ns' in header else 0,
+        sim_time=header.get('sim_time') is True,
+        freshness=_field_freshness(header, path),
     )
+
+
+def _field_freshness(header: dict[str, object],
+                     path: Path | str) -> tuple[tuple[str, float, str], ...]:
+    value = header.get('freshness', [])
+    rules: list[tuple[str, float, str]] = []
+    if isinstance(value, list):
+        for rule in value:
+            if not (isinstance(rule, list) and len(rule) == 3 and type(rule[0]) is str
+                    and type(rule[1]) in (int, float) and type(rule[2]) is str):
+                break
+            rules.append((rule[0], float(rule[1]), rule[2]))
+        else:
+            return tuple(rules)
+    raise _bad_field(path, "'freshness'", 'a list of [key, max_age, on_stale]', value)
 
 
 _MISSING: Final = object()
@@ -472,6 +504,7 @@ def _check_fields(ckpt: Checkpoint, path: Path | str) -> None:
             ('cut', ckpt.cut is None or (type(ckpt.cut) is int and 0 <= ckpt.cut < _U64)),
             ('windows', _windows_ok(ckpt.windows)),
             ('vars_blob', type(ckpt.vars_blob) is bytes),
+            ('clock_ns', type(ckpt.clock_ns) is int and 0 <= ckpt.clock_ns < _U64),
         )
         if not ok
     ]

@@ -11,6 +11,9 @@ Example::
         hang_timeout: 10.0        # s without a heartbeat: hung, killed, recovered (null: off)
         start_timeout: 60.0       # s from spawn to the first heartbeat (null: off)
         warm_standby: true        # a started process waits to replace it (default: rory only)
+        release_gate:             # after a recovery, hold S4 until /rory/<name>/release is called
+          timeout: 60.0           # s; null: wait for the call however long
+          on_timeout: give_up     # give_up (FATAL, the safe state held) | release
     safe_state:                   # held from S1 until S4, while any node recovers
       - topic: /e_stop            # relative (e_stop): in the supervisor's namespace
         type: std_msgs/msg/Bool
@@ -59,6 +62,18 @@ class Backoff:
     max_restarts: int = 5  # consecutive crashes before giving up (FATAL)
 
 
+GATE_OUTCOMES = ('give_up', 'release')
+
+
+@dataclass(frozen=True)
+class ReleaseGate:
+    """S4 of a recovery waits for a ``std_srvs/Trigger`` call on ``/rory/<node>/release``
+    (docs/architecture.md, "The release gate")."""
+
+    timeout: float | None = None  # seconds from reaching the gate; None: no limit
+    on_timeout: str = 'give_up'  # 'give_up' (FATAL, safe state held) or 'release'
+
+
 @dataclass(frozen=True)
 class NodeConfig:
     """One supervised node."""
@@ -79,6 +94,8 @@ class NodeConfig:
     # A fork of the zygote that has already joined DDS waits to become the node at its next
     # start (supervisor/standby.py): restart without the ~2 s of DDS discovery.
     warm_standby: bool = False
+    # None: a recovered node is released as soon as it has caught up.
+    release_gate: ReleaseGate | None = None
 
 
 @dataclass(frozen=True)
@@ -304,7 +321,7 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         {
             'name', 'command', 'method', 'checkpoint_interval', 'replay',
             'restart_on_clean_exit', 'env', 'backoff', 'hang_timeout', 'start_timeout',
-            'warm_standby',
+            'warm_standby', 'release_gate',
         },
     )
     name = f.required('name')
@@ -345,7 +362,25 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         # Default on for rory only: restart stands for ROS's respawn, and checkpoint and
         # replay for the paper's ablations, all cold starts.
         warm_standby=f.boolean('warm_standby', method == Method.RORY.value),
+        release_gate=_release_gate(path, f'{where}.release_gate', f.obj.get('release_gate')),
     )
+
+
+def _release_gate(path: Path, where: str, obj: Any) -> ReleaseGate | None:
+    """``release_gate: {timeout: 60, on_timeout: release}``; ``true`` is a gate without a
+    timeout; absent, ``false`` or null: none."""
+    if obj is None or obj is False:
+        return None
+    if obj is True:
+        return ReleaseGate()
+    f = _Fields(path, where, obj, {'timeout', 'on_timeout'})
+    on_timeout = f.obj.get('on_timeout', ReleaseGate.on_timeout)
+    if on_timeout not in GATE_OUTCOMES:
+        raise f.error('on_timeout', f'must be give_up or release, got {on_timeout!r}')
+    timeout = f.optional_number('timeout', None)
+    if timeout is None and 'on_timeout' in f.obj:
+        raise f.error('on_timeout', 'needs a timeout (seconds) to apply')
+    return ReleaseGate(timeout=timeout, on_timeout=on_timeout)
 
 
 def _resolve_command(command: list[str]) -> tuple[str, ...]:

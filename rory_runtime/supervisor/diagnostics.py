@@ -44,7 +44,8 @@ EVENTS_QOS: Final = QoSProfile(
 
 _WARN_STATES: Final = frozenset({
     NodeState.STOPPED, NodeState.STARTING, NodeState.ARMING, NodeState.CRASHED,
-    NodeState.BACKOFF, NodeState.RESTORING, NodeState.REPLAYING, NodeState.STOPPING,
+    NodeState.BACKOFF, NodeState.RESTORING, NodeState.REPLAYING, NodeState.GATED,
+    NodeState.STOPPING,
 })
 
 
@@ -67,6 +68,12 @@ class NodeHealth:
     # The node's last checkpoint failure (a variable that cannot be saved, a full disk), until
     # a checkpoint succeeds.
     checkpoint_error: str | None = None
+    # Why the supervisor gave up (FATAL), in its own words.
+    fatal_reason: str | None = None
+    # What the last restore did with each key variable (freshness.Verdict.to_json()).
+    freshness: dict[str, Any] | None = None
+    # The release gate's service, while the node waits at it (GATED).
+    gate_service: str | None = None
 
 
 OK: Final[bytes] = bytes(DiagnosticStatus.OK)
@@ -92,7 +99,12 @@ def _message(health: NodeHealth) -> str:
         return (f'running; checkpoints overdue ({since}; the interval follows the node\'s '
                 'ROS time)')
     if health.state == NodeState.FATAL:
+        if health.fatal_reason:
+            return f'gave up: {health.fatal_reason}'
         return f'gave up after {health.crashes} crashes; the safe state is held'
+    if health.state == NodeState.GATED:
+        return (f'recovered, outputs muted and the safe state held until '
+                f'{health.gate_service} is called')
     if health.state == NodeState.EXITED:
         return 'finished (exit status 0)'
     if health.state == NodeState.RUNNING:
@@ -122,6 +134,12 @@ def node_status(health: NodeHealth, namespace: str = '/') -> DiagnosticStatus:
         'last checkpoint age (s)': _number(health.last_checkpoint_age_s),
         'warm standby': health.standby,
     }
+    if health.freshness is not None:
+        verdict = health.freshness
+        values['last restore: checkpoint age (s)'] = _number(verdict.get('age_s'))
+        for key, label in (('restored', 'restored'), ('reset', 'reset (stale)'),
+                           ('kept_stale', 'kept stale'), ('refused', 'refused (stale)')):
+            values[f'last restore: {label}'] = ', '.join(map(str, verdict.get(key) or []))
     level = level_of(health.state)
     if health.state == NodeState.RUNNING:
         # A node that runs but cannot be recovered to now is not OK.

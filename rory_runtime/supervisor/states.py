@@ -15,6 +15,13 @@ matched, so that a crash from then on loses nothing. A crash::
             -> REPLAYING (S3: replay) -> RUNNING (S4 release)
 
 with ``BACKOFF`` between CRASHED and RESTORING in a crash loop and ``FATAL`` when it gives up.
+A node with a release gate waits after its release, live but with its outputs muted and the
+safe state held, for a call on ``/rory/<node>/release`` (or its timeout)::
+
+    REPLAYING (or RESTORING) -> GATED -> RUNNING (S4)    or    GATED -> FATAL
+
+A checkpoint whose stale variable's rule is ``refuse`` (freshness.py) gives up at once:
+``RESTORING -> FATAL``.
 A clean exit (status 0) is the node finishing: ``EXITED``, not a crash. After a supervisor
 that did not stop cleanly (killed, power cut), the next one resumes the node from the store::
 
@@ -44,6 +51,7 @@ class NodeState(enum.StrEnum):
     BACKOFF = 'BACKOFF'
     RESTORING = 'RESTORING'
     REPLAYING = 'REPLAYING'
+    GATED = 'GATED'
     EXITED = 'EXITED'
     FATAL = 'FATAL'
     STOPPING = 'STOPPING'
@@ -57,14 +65,16 @@ TRANSITIONS: Final[dict[NodeState, frozenset[NodeState]]] = {
     S.RUNNING: frozenset({S.CRASHED, S.EXITED, S.STOPPING}),
     S.CRASHED: frozenset({S.BACKOFF, S.RESTORING, S.FATAL, S.STOPPING}),
     S.BACKOFF: frozenset({S.RESTORING, S.STOPPING}),
-    S.RESTORING: frozenset({S.REPLAYING, S.RUNNING, S.CRASHED, S.EXITED, S.STOPPING}),
-    S.REPLAYING: frozenset({S.RUNNING, S.CRASHED, S.EXITED, S.STOPPING}),
+    S.RESTORING: frozenset({S.REPLAYING, S.RUNNING, S.GATED, S.CRASHED, S.EXITED, S.FATAL,
+                            S.STOPPING}),
+    S.REPLAYING: frozenset({S.RUNNING, S.GATED, S.CRASHED, S.EXITED, S.STOPPING}),
+    S.GATED: frozenset({S.RUNNING, S.CRASHED, S.EXITED, S.FATAL, S.STOPPING}),
     S.EXITED: frozenset({S.RESTORING, S.STOPPING}),
     S.FATAL: frozenset({S.STOPPING}),
     S.STOPPING: frozenset({S.STOPPED}),
 }
 
-RECOVERING: Final = frozenset({S.CRASHED, S.BACKOFF, S.RESTORING, S.REPLAYING})
+RECOVERING: Final = frozenset({S.CRASHED, S.BACKOFF, S.RESTORING, S.REPLAYING, S.GATED})
 """States between a crash and the release that ends its recovery."""
 
 

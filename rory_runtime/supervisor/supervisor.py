@@ -34,10 +34,12 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String, UInt8MultiArray
+from std_srvs.srv import Trigger
 
 from .. import protocol
 from ..dds import fast_rediscovery_env
 from ..errors import ProtocolError, RoryError
+from ..freshness import describe as describe_verdict
 from ..fsutil import make_private_dir
 from ..inflight import read_beat, slot_path
 from ..log import SegmentStore, default_typestore
@@ -110,7 +112,7 @@ STALL_SUSPECT = 0.6
 # States in which a node has a process that must beat.
 _LIVE = frozenset({
     NodeState.STARTING, NodeState.ARMING, NodeState.RUNNING, NodeState.RESTORING,
-    NodeState.REPLAYING,
+    NodeState.REPLAYING, NodeState.GATED,
 })
 """Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
 
@@ -145,7 +147,18 @@ class Stop:
     reason: str
 
 
-Event = ChildExited | StatusReceived | Released | Stop
+@dataclass(frozen=True)
+class GateCall:
+    """A call on a node's release gate service; the answer goes back through ``reply``."""
+
+    node: str
+    reply: queue.Queue[tuple[bool, str]]
+
+
+Event = ChildExited | StatusReceived | Released | Stop | GateCall
+
+GATE_CALL_ANSWER = 2.0
+"""Seconds a release call waits for the main loop's answer (it is busy for milliseconds)."""
 
 
 class RosoutHandler(logging.Handler):
@@ -243,6 +256,17 @@ class ManagedNode:
         self._replay_writer: Any = None
         self.replay_pub: protocol.SignedPublisher | None = None
         self._retired_writers: list[Any] = []
+        # The release gate (config.ReleaseGate): the RELEASED stats held while GATED, when
+        # the gate times out, whether it was called before the node reached it, OPEN sent.
+        self.gated_stats: dict[str, Any] | None = None
+        self.gated_at: float | None = None
+        self.gate_deadline: float | None = None
+        self.gate_called = False
+        self.open_sent = False
+        self.gate_reason = ''
+        self.fatal_reason: str | None = None
+        # What the last recovery did with each key variable (freshness.py's verdict).
+        self.last_freshness: dict[str, Any] | None = None
 
         def on_status(msg: Any) -> None:
             sup.post_status(cfg.name, str(msg.data))
@@ -250,6 +274,23 @@ class ManagedNode:
         sup.ros_node.create_subscription(
             String, protocol.status_topic(cfg.name, sup.channel), on_status, protocol.STATUS_QOS
         )
+        if cfg.release_gate is not None:
+            sup.ros_node.create_service(Trigger, self.gate_service, self._gate_service_call)
+
+    @property
+    def gate_service(self) -> str:
+        """The release gate's ``std_srvs/Trigger`` service: ``/rory/<node>/release``."""
+        return f'{self.sup.channel}/{self.id}/release'
+
+    def _gate_service_call(self, _request: Any, response: Any) -> Any:
+        # On the ROS spinner thread: the main loop owns the node's state and answers.
+        reply: queue.Queue[tuple[bool, str]] = queue.Queue(maxsize=1)
+        self.sup.events.put(GateCall(self.id, reply))
+        try:
+            response.success, response.message = reply.get(timeout=GATE_CALL_ANSWER)
+        except queue.Empty:
+            response.success, response.message = False, 'the supervisor did not answer'
+        return response
 
     # -- process life -------------------------------------------------------------------------
 
@@ -279,6 +320,10 @@ class ManagedNode:
             env[protocol.ENV_INTERVAL] = repr(self.cfg.checkpoint_interval)
         else:
             env.pop(protocol.ENV_INTERVAL, None)
+        if mode == Mode.RECOVER and self.cfg.release_gate is not None:
+            env[protocol.ENV_GATED] = '1'
+        else:
+            env.pop(protocol.ENV_GATED, None)
         return env
 
     def spawn(self, mode: Mode) -> None:
@@ -375,9 +420,9 @@ class ManagedNode:
     def on_exit(self, ev: ChildExited) -> None:
         """The process ended."""
         if ev.incarnation != self.incarnation or self.sm.state in (
-            NodeState.STOPPING, NodeState.STOPPED,
+            NodeState.STOPPING, NodeState.STOPPED, NodeState.FATAL,
         ):
-            return
+            return  # (FATAL: a process the supervisor ended when it gave up)
         self.child = None
         how = describe_exit(ev.code)
         if self.kill_reason is not None:
@@ -398,24 +443,31 @@ class ManagedNode:
         self._crashed(ev, was_recovering)
         delay = self.policy.on_crash(ran_for)
         if delay is None:
-            # Giving up leaves the robot in the safe state: nothing will drive it back out.
-            self.sm.change_state(
-                NodeState.FATAL,
-                f'{self.policy.consecutive - 1} restarts in a row failed; giving up',
-            )
-            self.sup.events_log.write('fatal', self.id, crashes=self.policy.consecutive)
-            self._drop_standby()
-            if self.recovery is not None:
-                # Stop recording for a node that will not come back (R stays on disk).
-                self.recovery.finish()
-                if self.ring is not None:
-                    self.ring.deactivate()
+            self._give_up(f'{self.policy.consecutive - 1} restarts in a row failed; giving up',
+                          crashes=self.policy.consecutive)
             return
         if delay > 0:
             self.restart_at = time.monotonic() + delay
             self.sm.change_state(NodeState.BACKOFF, f'restart in {delay:.1f} s')
         else:
             self._restart()
+
+    def _give_up(self, reason: str, **fields: Any) -> None:
+        """FATAL: the node is not started again. Giving up leaves the robot in the safe state:
+        nothing will drive it back out."""
+        self.fatal_reason = reason
+        self.sm.change_state(NodeState.FATAL, reason)
+        self.sup.events_log.write('fatal', self.id, reason=reason, **fields)
+        child, self.child = self.child, None
+        if child is not None:  # refused or gated: the process the supervisor will not run
+            child.send_signal(signal.SIGKILL)
+        self._drop_standby()
+        self.gated_stats = None
+        if self.recovery is not None:
+            # Stop recording for a node that will not come back (R stays on disk).
+            self.recovery.finish()
+            if self.ring is not None:
+                self.ring.deactivate()
 
     def _judge_crash(self, ev: ChildExited) -> None:
         """Did it die applying a message - the same one as last time (poison)?"""
@@ -478,6 +530,13 @@ class ManagedNode:
                 self._on_synced()
         elif kind == StatusKind.RELEASED:
             self._on_released(status)
+        elif kind == StatusKind.OPENED:
+            if self.sm.state == NodeState.GATED and self.gated_stats is not None:
+                # What the node published while it waited was muted: counted, never sent.
+                self.sup.events_log.write('gate_opened', self.id, reason=self.gate_reason,
+                                          muted=status.get('muted'))
+                stats, self.gated_stats = self.gated_stats, None
+                self._finish_release(stats)
         elif kind == StatusKind.CHECKPOINT:
             _logger.info(
                 '%s %s: checkpoint %s (cut %s, %s B, stall %.2f ms)', LOG_PREFIX, self.id,
@@ -527,6 +586,12 @@ class ManagedNode:
                     )
                 self.recovery.ring = self.ring
                 self.recovery.s2_isolate()
+        freshness = (status.get('restored') or {}).get('freshness')
+        if isinstance(freshness, dict):
+            self.last_freshness = freshness
+            if freshness.get('refused'):
+                self._refuse_stale(freshness)
+                return
         if self.recovery is not None:
             self.recovery.on_hello(float(status.get('restore_ms', 0.0)))
             if self.cfg.method.checkpoints and status.get('refused') and not status.get('restored'):
@@ -543,6 +608,18 @@ class ManagedNode:
                 cut = (status.get('restored') or {}).get('cut')
                 self.sm.change_state(NodeState.REPLAYING, f'replay after segment {cut}')
             self._send_sync()
+
+    def _refuse_stale(self, verdict: dict[str, Any]) -> None:
+        """A stale variable whose rule is ``refuse``: the node does not run on its checkpoint
+        (freshness.py); an operator decides (raise max_age, or start it fresh)."""
+        age_s = verdict.get('age_s')
+        age = 'unknown' if age_s is None else f'{float(age_s):.1f} s'
+        reason = (f'checkpoint too old for {", ".join(map(str, verdict.get("refused", [])))} '
+                  f'(age {age} on the {verdict.get("clock")} clock; on_stale: refuse): not '
+                  'started, the safe state is held; start it fresh (rory supervise --fresh) or '
+                  'raise max_age in keyvars.yaml')
+        _logger.error('%s %s: %s', LOG_PREFIX, self.id, reason)
+        self._give_up(reason, freshness=verdict)
 
     def _on_inputs(self, status: dict[str, Any]) -> None:
         """The node made a subscription after HELLO: read that topic in the ring too."""
@@ -598,17 +675,76 @@ class ManagedNode:
                                              'ticks_replayed', 'clock_fallbacks',
                                              'parameter_changes_replayed',
                                              'requests_replayed')}
+        recovering = self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING)
+        if recovering and self.recovery is not None and self.cfg.release_gate is not None:
+            self._enter_gate(stats)
+            return
+        self._finish_release(stats)
+
+    def _enter_gate(self, stats: dict[str, Any]) -> None:
+        """Caught up and live, outputs muted: wait for the release call (or the timeout)."""
+        gate = self.cfg.release_gate
+        assert gate is not None
+        self.gated_stats = stats
+        self.gated_at = time.monotonic()
+        self.open_sent = False
+        self.gate_deadline = None if gate.timeout is None else self.gated_at + gate.timeout
+        limit = ('' if gate.timeout is None
+                 else f', {gate.on_timeout.replace("_", " ")} after {gate.timeout:g} s')
+        self.sm.change_state(NodeState.GATED, f'caught up; outputs muted and the safe state '
+                                              f'held until {self.gate_service} is called{limit}')
+        self.sup.events_log.write('gated', self.id, service=self.gate_service,
+                                  timeout=gate.timeout, on_timeout=gate.on_timeout)
+        if self.gate_called:
+            self._open_gate('called before the node had caught up')
+
+    def _open_gate(self, why: str) -> None:
+        """Tell the node to unmute; S4 ends when it says OPENED."""
+        if self.open_sent:
+            return
+        self.open_sent = True
+        self.gate_reason = why
+        _logger.info('%s %s: release gate opened (%s)', LOG_PREFIX, self.id, why)
+        assert self.replay_pub is not None  # made by spawn()
+        self.replay_pub.publish(protocol.pack_open(self.incarnation))
+
+    def on_gate_call(self) -> tuple[bool, str]:
+        """A call on the release gate service (main thread): the answer to give."""
+        state = self.sm.state
+        if state == NodeState.GATED:
+            self._open_gate(f'{self.gate_service} called')
+            return True, f'{self.id}: released'
+        if state in (NodeState.CRASHED, NodeState.BACKOFF, NodeState.RESTORING,
+                     NodeState.REPLAYING):
+            self.gate_called = True
+            return True, f'{self.id}: {state.value.lower()}; released as soon as it has caught up'
+        return False, f'{self.id}: {state.value}, no recovery waits for release'
+
+    def _finish_release(self, stats: dict[str, Any]) -> None:
         rec = self.recovery
-        if rec is not None and self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING):
+        if rec is not None and self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING,
+                                                 NodeState.GATED):
+            gate_ms = (None if self.gated_at is None
+                       else round((time.monotonic() - self.gated_at) * 1000.0, 1))
+            gate_reason = self.gate_reason or None
+            self.gated_at, self.gate_deadline, self.gate_called = None, None, False
+            self.open_sent, self.gate_reason = False, ''
             timing = rec.s4_release(stats)
             self.last_recovery = (timing['total_ms'], time.monotonic())
             self.sm.change_state(NodeState.RUNNING, 'released')
+            gated = '' if gate_ms is None else f'; gated {gate_ms / 1000:.1f} s, {gate_reason}'
             _logger.info(
-                '%s %s: recovered in %.1f ms (%s; crashes %d; replayed %s, duplicates skipped %s)',
-                LOG_PREFIX, self.id, timing['total_ms'],
+                '%s %s: recovered in %.1f ms (%s; crashes %d; replayed %s, duplicates skipped '
+                '%s%s)', LOG_PREFIX, self.id, timing['total_ms'],
                 ' '.join(f'{k[:-3]}={v:.1f}' for k, v in timing.items() if k != 'total_ms'),
-                rec.crashes, stats['replayed'], stats['duplicates'],
+                rec.crashes, stats['replayed'], stats['duplicates'], gated,
             )
+            verdict = self.last_freshness
+            if verdict is not None and self.cfg.method.checkpoints:
+                level = (logging.WARNING if verdict.get('reset') or verdict.get('kept_stale')
+                         else logging.INFO)
+                _logger.log(level, '%s %s: %s', LOG_PREFIX, self.id,
+                            describe_verdict(verdict))
             pace = self._replay_pace().value if self.cfg.method.logs else None
             gaps = self._report_input_gaps(rec)
             never = rec.never_delivered()
@@ -623,7 +759,8 @@ class ManagedNode:
                 'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
                 incarnation=self.incarnation, replay=pace, **timing, **stats,
                 input_gaps=[g.to_json() for g in gaps], r_log=rec.r_summary(),
-                never_delivered=never,
+                never_delivered=never, freshness=self.last_freshness, gate_ms=gate_ms,
+                gate=gate_reason,
             )
             if rec.ring is None or not rec.ring.active_topics:
                 self._end_recovery()
@@ -660,6 +797,9 @@ class ManagedNode:
         return new
 
     def _end_recovery(self) -> None:
+        if self.sm.state == NodeState.GATED:
+            # Every topic is live again, but S4 waits for the gate; the release ends it.
+            return
         if self.recovery is not None:
             self._report_input_gaps(self.recovery)
             self.recovery.finish()
@@ -686,6 +826,9 @@ class ManagedNode:
             standby=standby,
             checkpoint_overdue_s=self.checkpoint_overdue(now),
             checkpoint_error=self.checkpoint_error,
+            fatal_reason=self.fatal_reason,
+            freshness=self.last_freshness if self.cfg.method.checkpoints else None,
+            gate_service=self.gate_service if self.cfg.release_gate is not None else None,
         )
 
     def _prepare_standby(self) -> None:
@@ -745,6 +888,15 @@ class ManagedNode:
                 and self.standby_for != self.incarnation and self.running_since is not None
                 and now - self.running_since >= STANDBY_DELAY):
             self._prepare_standby()
+        if (state == NodeState.GATED and self.gate_deadline is not None
+                and now >= self.gate_deadline and not self.open_sent):
+            gate = self.cfg.release_gate
+            assert gate is not None
+            if gate.on_timeout == 'release':
+                self._open_gate(f'no call within {gate.timeout:g} s; on_timeout: release')
+            else:
+                self._give_up(f'no call on {self.gate_service} within {gate.timeout:g} s; '
+                              'on_timeout: give_up; the safe state is held')
         if state == NodeState.BACKOFF and self.restart_at is not None and now >= self.restart_at:
             self._restart()
         elif state in (NodeState.ARMING, NodeState.REPLAYING):
@@ -1115,6 +1267,8 @@ class Supervisor:
                 self.nodes[event.node].on_status(event.status)
             elif isinstance(event, Released):
                 pass  # the node's RELEASED status ends the recovery; this only marks the send
+            elif isinstance(event, GateCall):
+                event.reply.put(self.nodes[event.node].on_gate_call())
             now = time.monotonic()
             for node in self.nodes.values():
                 node.tick(now)

@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rcl_interfaces.msg import ListParametersResult
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.parameter import Parameter
 
 from rory_runtime import codec
@@ -21,12 +23,15 @@ from rory_runtime.protocol import Method, Mode
 
 
 class _Node:
-    """Key variables (a grid large enough to be pooled, a counter), rclpy's logger and no
-    parameters."""
+    """Key variables (a grid large enough to be pooled, a counter), rclpy's logger and
+    clock, and no parameters."""
 
     def __init__(self) -> None:
         self.grid = np.zeros((256, 256), dtype=np.float32)  # 256 kB
         self.ticks = 0
+
+    def get_clock(self) -> Clock:
+        return Clock(clock_type=ClockType.ROS_TIME)
 
     def get_logger(self) -> logging.Logger:
         return logging.getLogger('test-node')

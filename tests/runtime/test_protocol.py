@@ -21,6 +21,7 @@ from rory_runtime.protocol import (
     InputSpec,
     Method,
     Msg,
+    Open,
     Release,
     StatusKind,
     Sync,
@@ -29,6 +30,7 @@ from rory_runtime.protocol import (
     encode_status,
     message_id,
     pack_msg,
+    pack_open,
     pack_release,
     pack_sync,
     replay_topic,
@@ -80,6 +82,10 @@ VALID_ENVELOPES = [
 
 def test_sync_round_trips_every_field() -> None:
     assert unpack(pack_sync(4_000_000_000, 2**64 - 1)) == Sync(4_000_000_000, 2**64 - 1)
+
+
+def test_open_round_trips() -> None:
+    assert unpack(pack_open(2**32 - 1)) == Open(2**32 - 1)
 
 
 def test_release_round_trips_every_field() -> None:
@@ -252,7 +258,7 @@ def test_wrong_version_raises_protocol_error(version: int) -> None:
         unpack(wrap(bytes(payload)))
 
 
-@pytest.mark.parametrize('kind', [0, 4, 5, 255])
+@pytest.mark.parametrize('kind', [0, 5, 6, 255])
 def test_unknown_kind_raises_protocol_error(kind: int) -> None:
     assert kind not in {k.value for k in EnvelopeKind}
     payload = bytearray(payload_of(pack_release(1, 2, 3)))
@@ -300,7 +306,7 @@ def _unpack_or_protocol_error(raw: bytes) -> None:
         env = unpack(raw)
     except ProtocolError:
         return
-    assert isinstance(env, Sync | Msg | Release)
+    assert isinstance(env, Sync | Msg | Release | Open)
 
 
 @settings(max_examples=300, deadline=None, derandomize=True)

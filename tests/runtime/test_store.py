@@ -103,6 +103,15 @@ def test_roundtrip_with_parameters_and_without(store: CheckpointStore) -> None:
     assert store.load(path).parameters == b''
 
 
+def test_roundtrip_with_the_clock_and_freshness_rules(store: CheckpointStore) -> None:
+    ckpt = dataclasses.replace(make_ckpt(1), clock_ns=123_000_000_000, sim_time=True,
+                               freshness=(('pose', 5.0, 'reset'), ('global:goal', 30.0, 'keep')))
+    assert deserialize(serialize(ckpt)) == ckpt
+    # From before they were kept: no clock (0), no rules.
+    plain = deserialize(serialize(make_ckpt(2)))
+    assert (plain.clock_ns, plain.sim_time, plain.freshness) == (0, False, ())
+
+
 def test_roundtrip_without_log(store: CheckpointStore) -> None:
     ckpt = make_ckpt(1, cut=None, windows={}, vars_blob=b'')
     assert store.load(store.write(ckpt)) == ckpt

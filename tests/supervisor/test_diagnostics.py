@@ -27,6 +27,7 @@ def _health(state: NodeState, **kw: object) -> NodeHealth:
     (NodeState.BACKOFF, DiagnosticStatus.WARN),
     (NodeState.RESTORING, DiagnosticStatus.WARN),
     (NodeState.REPLAYING, DiagnosticStatus.WARN),
+    (NodeState.GATED, DiagnosticStatus.WARN),
     (NodeState.FATAL, DiagnosticStatus.ERROR),
 ])
 def test_the_level_follows_the_state(state: NodeState, level: bytes) -> None:
@@ -57,6 +58,31 @@ def test_a_node_given_up_on_is_an_error_that_says_the_safe_state_is_held() -> No
     assert status.level == DiagnosticStatus.ERROR
     assert 'gave up after 6 crashes' in status.message and 'safe state' in status.message
     assert {kv.key: kv.value for kv in status.values}['pid'] == ''
+
+
+def test_a_node_at_its_release_gate_says_which_service_releases_it() -> None:
+    status = node_status(_health(NodeState.GATED, gate_service='/rory/mapper/release'))
+    assert status.level == DiagnosticStatus.WARN
+    assert status.message == ('recovered, outputs muted and the safe state held until '
+                              '/rory/mapper/release is called')
+
+
+def test_a_refused_start_says_why() -> None:
+    status = node_status(_health(NodeState.FATAL, fatal_reason='checkpoint too old for pose'))
+    assert status.level == DiagnosticStatus.ERROR
+    assert status.message == 'gave up: checkpoint too old for pose'
+
+
+def test_the_last_restore_says_what_was_restored_reset_and_kept_stale() -> None:
+    verdict = {'age_s': 12.345, 'clock': 'system', 'restored': ['map', 'count'],
+               'reset': ['pose'], 'kept_stale': ['goal'], 'refused': [], 'max_age': {}}
+    values = {kv.key: kv.value for kv in node_status(_health(NodeState.RUNNING,
+                                                             freshness=verdict)).values}
+    assert values['last restore: checkpoint age (s)'] == '12.3'
+    assert values['last restore: restored'] == 'map, count'
+    assert values['last restore: reset (stale)'] == 'pose'
+    assert values['last restore: kept stale'] == 'goal'
+    assert values['last restore: refused (stale)'] == ''
 
 
 def test_unknowns_are_empty_not_zero() -> None:

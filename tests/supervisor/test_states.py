@@ -166,6 +166,6 @@ def test_clock_is_injectable() -> None:
 def test_recovering_property(state: NodeState) -> None:
     sm = machine()
     sm.state = state
-    expected = state in {S.CRASHED, S.BACKOFF, S.RESTORING, S.REPLAYING}
+    expected = state in {S.CRASHED, S.BACKOFF, S.RESTORING, S.REPLAYING, S.GATED}
     assert sm.recovering is expected
     assert (state in RECOVERING) is expected

@@ -13,6 +13,7 @@ from rory_runtime.protocol import Method, ReplayPace
 from rory_runtime.supervisor.config import (
     Backoff,
     NodeConfig,
+    ReleaseGate,
     SafeAction,
     SupervisorConfig,
     load_config,
@@ -464,3 +465,26 @@ def test_output_is_prefixed_with_several_nodes_unless_told(tmp_path: Path) -> No
     assert not load_config(write(tmp_path, two + 'prefix_output: false\n')).prefixes_output
     err = refusal(write(tmp_path, one + 'prefix_output: sometimes\n'))
     assert err.field == 'prefix_output' and 'true or false' in err.reason
+
+
+def test_a_release_gate_takes_a_timeout_and_what_to_do_then(tmp_path: Path) -> None:
+    def gate(text: str) -> object:
+        node = f'nodes: [{{name: a, command: [x], release_gate: {text}}}]\n'
+        return load_config(write(tmp_path, node)).nodes[0].release_gate
+
+    assert load_config(write(tmp_path, 'nodes: [{name: a, command: [x]}]\n')).nodes[0] \
+        .release_gate is None
+    assert gate('false') is None
+    assert gate('true') == ReleaseGate(timeout=None, on_timeout='give_up')
+    assert gate('{timeout: 30}') == ReleaseGate(timeout=30.0, on_timeout='give_up')
+    assert gate('{timeout: 5, on_timeout: release}') == ReleaseGate(5.0, 'release')
+    for bad, field, reason in (
+        ('{timeout: 5, on_timeout: later}', 'on_timeout', 'give_up or release'),
+        ('{on_timeout: release}', 'on_timeout', 'needs a timeout'),
+        ('{timeout: -1}', 'timeout', '> 0'),
+        ('{wait: 5}', 'wait', 'unknown'),
+    ):
+        node = f'nodes: [{{name: a, command: [x], release_gate: {bad}}}]\n'
+        err = refusal(write(tmp_path, node))
+        assert err.field == f'nodes[0].release_gate.{field}'
+        assert reason in str(err), err

@@ -961,7 +961,7 @@ class NodeRuntime:
 
     def _open_outputs(self) -> None:
         """The release gate opened: what the node publishes from now on goes out."""
-        if self.released and not self.outputs_open:
+        if self.released:  # (again if OPEN came twice: the supervisor resends until it hears)
             self.outputs_open = True
             self._status(StatusKind.OPENED, muted=self.stats['muted'])
 

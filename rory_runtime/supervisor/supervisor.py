@@ -263,6 +263,7 @@ class ManagedNode:
         self.gate_deadline: float | None = None
         self.gate_called = False
         self.open_sent = False
+        self.open_sent_at = 0.0
         self.gate_reason = ''
         self.fatal_reason: str | None = None
         # What the last recovery did with each key variable (freshness.py's verdict).
@@ -705,6 +706,12 @@ class ManagedNode:
         self.open_sent = True
         self.gate_reason = why
         _logger.info('%s %s: release gate opened (%s)', LOG_PREFIX, self.id, why)
+        self._send_open()
+
+    def _send_open(self) -> None:
+        # Sent again each SYNC_PERIOD until OPENED: under restart and checkpoint no SYNC has
+        # proved the shadow path, and an OPEN sent before the node's reader matched is lost.
+        self.open_sent_at = time.monotonic()
         assert self.replay_pub is not None  # made by spawn()
         self.replay_pub.publish(protocol.pack_open(self.incarnation))
 
@@ -888,6 +895,8 @@ class ManagedNode:
                 and self.standby_for != self.incarnation and self.running_since is not None
                 and now - self.running_since >= STANDBY_DELAY):
             self._prepare_standby()
+        if state == NodeState.GATED and self.open_sent and now - self.open_sent_at >= SYNC_PERIOD:
+            self._send_open()
         if (state == NodeState.GATED and self.gate_deadline is not None
                 and now >= self.gate_deadline and not self.open_sent):
             gate = self.cfg.release_gate

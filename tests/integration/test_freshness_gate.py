@@ -6,7 +6,8 @@ restored; `total` and `count` have no rule.
   with its outputs muted and /e_stop held, until /rory/integrator/release is called; then every
   number is counted once;
 * the same after the supervisor itself was killed and started again on the store it left;
-* on_stale: refuse: the node is not started, the supervisor gives up with the safe state held.
+* on_stale: refuse: the node is not started, the supervisor gives up with the safe state held;
+* a gate's timeout: released, or given up with the safe state held.
 """
 
 from __future__ import annotations
@@ -46,7 +47,8 @@ print(f'{future.result().success} {future.result().message}')
 '''
 
 
-def _setup(tmp_path: Path, on_stale: str, gate: bool) -> Path:
+def _setup(tmp_path: Path, on_stale: str, gate: bool | dict[str, Any],
+           method: str = 'rory') -> Path:
     """The integrator instrumented with a rule on history; its supervisor config's path."""
     keyvars = tmp_path / 'keyvars.yaml'
     keyvars.write_text(yaml.safe_dump({'nodes': [{
@@ -56,9 +58,9 @@ def _setup(tmp_path: Path, on_stale: str, gate: bool) -> Path:
     subprocess.run([sys.executable, '-m', 'rory_instrument', str(EXAMPLE), '--vars',
                     str(keyvars), '-o', str(tmp_path / 'out')], check=True, capture_output=True)
     node: dict[str, Any] = {'name': 'integrator', 'command': ['python', 'out/integrator.py'],
-                            'checkpoint_interval': 1.0}
+                            'checkpoint_interval': 1.0, 'method': method}
     if gate:
-        node['release_gate'] = {'timeout': None}
+        node['release_gate'] = gate if isinstance(gate, dict) else {'timeout': None}
     config = tmp_path / 'supervise.yaml'
     config.write_text(yaml.safe_dump({
         'nodes': [node], 'store': 'store',
@@ -231,3 +233,28 @@ def test_a_stale_variable_under_refuse_stops_the_start(run: _Run) -> None:
         f'/proc/{refused_pid}/stat').read_text().split(')')[-1].split()[0]
     text = run.log(supervisor)
     assert 'RESTORING -> FATAL (checkpoint too old for history' in text, text
+
+
+@pytest.mark.parametrize('on_timeout', ['release', 'give_up'])
+def test_a_gate_nobody_calls_does_what_its_timeout_says(run: _Run, on_timeout: str) -> None:
+    # release under checkpoint: no replay, so no SYNC has proved the path OPEN takes
+    _setup(run.dir, 'keep', gate={'timeout': 1.0, 'on_timeout': on_timeout},
+           method='checkpoint' if on_timeout == 'release' else 'rory')
+    supervisor = run.supervise()
+    run.start('count_publisher.py', str(NUMBERS), str(RATE), '@integrator')
+    run.kill_node_after_a_checkpoint()
+    wait_for(lambda: run.state_is('GATED'), 30, 'the node at its release gate')
+    gated_at = run.events('state')[-1]['t']
+    if on_timeout == 'release':
+        wait_for(lambda: bool(run.events('recovered')), 10, 'the release at the timeout')
+        (recovered,) = run.events('recovered')
+        assert 'on_timeout: release' in recovered['gate'] and recovered['gate_ms'] >= 1000.0
+        assert recovered['freshness']['kept_stale'] == ['history']
+        assert run.state_is('RUNNING') and _e_stop(run)[-1] == 'released'
+        supervisor.send_signal(signal.SIGINT)
+        assert supervisor.wait(timeout=20) == 0
+        return
+    assert supervisor.wait(timeout=30) == 1  # its only node given up
+    (fatal,) = run.events('fatal')
+    assert 'within 1 s; on_timeout: give_up' in fatal['reason'] and fatal['t'] - gated_at >= 1.0
+    assert not run.events('recovered') and _e_stop(run)[-1] == 'held'

@@ -75,7 +75,7 @@ class StackResult:
         return [e for e in self.events if e['kind'] == 'recovered' and e['node'] == node]
 
 
-def _instrument(name: str, into: Path) -> Path:
+def instrument(name: str, into: Path) -> Path:
     source = REPO / 'targets' / name
     if not into.exists():
         subprocess.run([sys.executable, '-m', 'rory_instrument', str(source), '--vars',
@@ -88,8 +88,8 @@ def stack_config(world: str, out: Path, methods: dict[str, str]) -> Path:
     """The stack's ``rory supervise`` config: both nodes, /e_stop held while either recovers."""
     from rory_eval.quality.amcl import AMCL
 
-    amcl = _instrument('amcl', out / 'inst' / 'amcl')
-    navigator = _instrument('navigator', out / 'inst' / 'navigator')
+    amcl = instrument('amcl', out / 'inst' / 'amcl')
+    navigator = instrument('navigator', out / 'inst' / 'navigator')
     amcl_args = AMCL.argv(world)[2:]  # --ros-args, sim time, start pose, the map
     config = {
         'nodes': [
@@ -110,7 +110,7 @@ def stack_config(world: str, out: Path, methods: dict[str, str]) -> Path:
     return path
 
 
-class _Striker(threading.Thread):
+class Striker(threading.Thread):
     """Kills the named nodes at their sim times (the clock runs at wall pace)."""
 
     def __init__(self, sim_log: Path, world: str, store: Path,
@@ -177,7 +177,7 @@ def run_stack(world: str, out: Path, *, domain_id: int, strikes: Sequence[Strike
     run.publish_once('/goal_pose', goal_message(world, spec.default_goal), subscribers=2)
     run.record('/navigator/status', String, qos=LATCHED)
     run.record('/e_stop', Bool, qos=LATCHED)
-    striker = _Striker(out / 'run' / 'sim.log', world, store, strikes)
+    striker = Striker(out / 'run' / 'sim.log', world, store, strikes)
     striker.start()
     wall_minus_mono = time.time() - time.monotonic()
     try:

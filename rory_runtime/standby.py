@@ -345,6 +345,25 @@ def absorb_init(
     return undo
 
 
+def give_nodes_arguments(node_class: Any, ros_args: Sequence[str]) -> None:
+    """Every node the program makes gets ``ros_args`` (parameters, remaps) as its own
+    arguments, as ``rclpy.init(args)`` would have given them to all its nodes: the standby's
+    ``rclpy.init`` had none (supervisor/zygote.py, ``node_level``).
+
+    A node's own ``cli_args`` come after them and so win, as node arguments win over global
+    ones; a node made with ``use_global_arguments=False`` or in another context gets none.
+    """
+    original = node_class.__init__
+    given = ['--ros-args', *ros_args]
+
+    def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
+        if kwargs.get('use_global_arguments', True) and kwargs.get('context') is None:
+            kwargs['cli_args'] = [*given, *(kwargs.get('cli_args') or [])]
+        original(self, *args, **kwargs)
+
+    node_class.__init__ = __init__
+
+
 def drop_placeholder_after_first_node(node_class: Any, placeholder: Any) -> None:
     """Destroy the placeholder once the program's first node exists.
 

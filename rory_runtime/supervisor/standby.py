@@ -33,8 +33,8 @@ from .zygote import (
     Zygote,
     activation_line,
     forkable,
+    init_arguments,
     init_signature,
-    ros_arguments,
 )
 
 _logger = logging.getLogger('rory.supervisor')
@@ -187,7 +187,7 @@ class ForkLauncher:
                 return standby.pid
         program = forkable(argv)
         assert program is not None
-        args = ros_arguments(program.args)
+        args = init_arguments(signature)
         init_args = [program.argv[0], *(('--ros-args', *args) if args else ())]
         streams = self.output.open(STANDBY_LABEL) if self.output is not None else None
         try:

@@ -48,7 +48,7 @@ import struct
 import sys
 import time
 import traceback
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -63,6 +63,7 @@ from ..standby import (
     StandbyError,
     absorb_init,
     drop_placeholder_after_first_node,
+    give_nodes_arguments,
     load_type_supports,
     read_activation,
     run_program,
@@ -110,10 +111,33 @@ def ros_arguments(argv: Sequence[str]) -> tuple[str, ...]:
     return tuple(taken)
 
 
+NODE_LEVEL_FLAGS = frozenset({'-p', '--param', '-r', '--remap', '--params-file'})
+"""``--ros-args`` flags that a node's own arguments (``Node(cli_args=...)``) carry as well as
+``rclpy.init``'s: parameters, remaps, parameter files. Others (``--log-level``, ``--enclave``,
+...) configure the process or its participant and must be given to ``rclpy.init``."""
+
+
+def node_level(args: Sequence[str]) -> bool:
+    """Whether every one of these ``--ros-args`` arguments can be given to the nodes instead of
+    to ``rclpy.init`` (each a flag of :data:`NODE_LEVEL_FLAGS` and its value)."""
+    pairs = list(args)
+    return len(pairs) % 2 == 0 and all(flag in NODE_LEVEL_FLAGS for flag in pairs[::2])
+
+
 def init_signature(program: Program, env: Mapping[str, str]) -> tuple[Any, ...]:
     """What a standby's ``rclpy.init`` and participant depend on: nodes with equal signatures
-    can all start from one standby."""
-    return (ros_arguments(program.args), tuple(sorted(init_environment(env).items())))
+    can all start from one standby. A node whose ROS arguments are all parameters and remaps
+    shares the standby that has none: they are given to its nodes at activation
+    (:func:`~rory_runtime.standby.give_nodes_arguments`), so one standby serves a robot's
+    nodes however their parameters differ."""
+    args = ros_arguments(program.args)
+    return (() if node_level(args) else args, tuple(sorted(init_environment(env).items())))
+
+
+def init_arguments(signature: Hashable) -> tuple[str, ...]:
+    """The ``--ros-args`` a standby of this :func:`init_signature` gives ``rclpy.init``."""
+    assert isinstance(signature, tuple)
+    return tuple(signature[0])
 
 
 def forkable(argv: Sequence[str]) -> Program | None:
@@ -398,14 +422,19 @@ def _become_standby(request: dict[str, Any], control: int, ready: int) -> int:
         raise StandbyError(f'cannot become {activation.argv!r}')
     title(shlex.join(activation.argv))
     _enter(activation.env, activation.cwd)
-    absorb_init(rclpy, [program.argv[0], *init_args[1:]], same=_same_init)
+    asked, done = ros_arguments(program.args), ros_arguments(init_args)
+    if asked != done and not done and node_level(asked):
+        # A standby without ROS arguments: the node's parameters and remaps go to its nodes.
+        give_nodes_arguments(Node, asked)
+        done = asked
+
+    def same_init(wanted: Sequence[str], _used: Sequence[str]) -> bool:
+        return ros_arguments(wanted) == done
+
+    absorb_init(rclpy, [program.argv[0], *init_args[1:]], same=same_init)
     drop_placeholder_after_first_node(Node, placeholder)
     _run(program)
     return 0
-
-
-def _same_init(wanted: Sequence[str], used: Sequence[str]) -> bool:
-    return ros_arguments(wanted) == ros_arguments(used)
 
 
 # -- the supervisor's side ----------------------------------------------------------------------

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from rory_runtime.protocol import ENV_INCARNATION, ENV_MODE, ENV_QUARANTINE
-from rory_runtime.supervisor.zygote import forkable, init_signature, ros_arguments
+from rory_runtime.supervisor.zygote import forkable, init_signature, node_level, ros_arguments
 
 pytestmark = pytest.mark.ros
 
@@ -169,7 +169,8 @@ def test_another_init_forks_cold_and_keeps_the_standby_for_the_nodes_it_fits(
     script.write_text(PROGRAM)
     argv = [sys.executable, str(script), str(tmp_path / 'out.json'), '0']
     standby = launcher.ask('prepare', argv=argv, env=_env(ros_domain, 2), cwd=str(tmp_path))
-    other = [*argv, '--ros-args', '-r', '__node:=other']
+    # A log level is rclpy.init's alone (parameters and remaps a node's own arguments carry).
+    other = [*argv, '--ros-args', '--log-level', 'warn']
     child = launcher.ask('spawn', argv=other, env=_env(ros_domain, 3), cwd=str(tmp_path))
     assert child['warm'] is False and child['pid'] != standby['pid']
     assert child['why_cold'] == 'no standby waiting'
@@ -258,13 +259,75 @@ def test_only_plain_python_programs_are_forked(argv: list[str]) -> None:
 
 
 def test_nodes_share_a_standby_when_their_ros_arguments_and_dds_environment_agree() -> None:
-    program = forkable(['python', 'node.py', 'a', '--ros-args', '-p', 'x:=1', '--', 'b'])
+    program = forkable(['python', 'node.py', 'a', '--ros-args', '--log-level', 'warn', '--',
+                        'b'])
     assert program is not None
-    assert ros_arguments(program.args) == ('-p', 'x:=1')
+    assert ros_arguments(program.args) == ('--log-level', 'warn')
     env = {'ROS_DOMAIN_ID': '3', 'RORY_NODE': 'a', 'HOME': '/h'}
     same = init_signature(program, env)
     assert init_signature(program, {**env, 'RORY_NODE': 'b', 'HOME': '/x'}) == same
     assert init_signature(program, {**env, 'ROS_DOMAIN_ID': '4'}) != same
+
+
+def test_parameters_and_remaps_alone_share_the_standby_that_has_no_arguments() -> None:
+    env = {'ROS_DOMAIN_ID': '3'}
+
+    def signature(*ros_args: str) -> object:
+        program = forkable(['python', 'node.py', '--ros-args', *ros_args])
+        assert program is not None
+        return init_signature(program, env)
+
+    bare = forkable(['python', 'node.py'])
+    assert bare is not None
+    plain = init_signature(bare, env)
+    assert signature('-p', 'x:=1', '-r', '__node:=b', '--params-file', '/p.yaml') == plain
+    assert signature('--param', 'y:=2', '--remap', '/a:=/b') == plain
+    assert node_level(('-p', 'x:=1', '-r', 'a:=b'))
+    assert not node_level(('-p', 'x:=1', '--log-level', 'warn'))
+    assert not node_level(('-p',))
+    assert signature('-p', 'x:=1', '--enclave', '/e') != plain
+
+
+NAMED = '''
+import json, sys
+import rclpy
+from rclpy.node import Node
+
+rclpy.init()
+node = Node('real_node', cli_args=['--ros-args', '-p', 'own:=mine'])
+node.declare_parameter('answer', 0)
+node.declare_parameter('own', '')
+other = Node('unremapped', use_global_arguments=False)
+other.declare_parameter('answer', 0)
+with open(sys.argv[1], 'w') as f:
+    json.dump({'name': node.get_name(), 'answer': node.get_parameter('answer').value,
+               'own': node.get_parameter('own').value,
+               'other': [other.get_name(), other.get_parameter('answer').value]}, f)
+rclpy.shutdown()
+'''
+
+
+def test_a_standby_without_arguments_gives_the_nodes_their_parameters_and_remaps(
+    tmp_path: Path, ros_domain: int, launcher: Host
+) -> None:
+    script = tmp_path / 'named.py'
+    script.write_text(NAMED)
+    first = [sys.executable, str(script), str(tmp_path / 'a.json'), '--ros-args', '-p',
+             'answer:=1']
+    second = [sys.executable, str(script), str(tmp_path / 'b.json'), '--ros-args', '-p',
+              'answer:=42', '-r', '__node:=renamed', '-p', 'own:=theirs']
+    pid = launcher.ask('prepare', argv=first, env=_env(ros_domain, 2), cwd=str(tmp_path))['pid']
+    assert launcher.ask('prepare', argv=second, env=_env(ros_domain, 2),
+                        cwd=str(tmp_path))['pid'] == pid  # one standby for both
+    _wait_ready(launcher, second, tmp_path)
+    child = launcher.ask('spawn', argv=second, env=_env(ros_domain, 3), cwd=str(tmp_path))
+    assert child['pid'] == pid and child['warm'] is True
+    assert launcher.ask('wait', pid=pid, timeout=30)['code'] == 0
+    seen = json.loads((tmp_path / 'b.json').read_text())
+    # As rclpy.init(args) would have: the remap and the parameter reach the node; its own
+    # cli_args win over them; a node that asked for no global arguments gets none.
+    assert seen == {'name': 'renamed', 'answer': 42, 'own': 'mine',
+                    'other': ['unremapped', 0]}
 
 
 CHATTY = '''

@@ -52,6 +52,7 @@ bench: $(STAMP)
 	$(PY) -m rory_eval.message_cost_bench --runs 5
 	$(PY) -m rory_eval.message_cost_bench --input tick --runs 5
 	$(PY) -m rory_eval.hot_path_bench
+	$(PY) -m rory_eval.stack_bench --runs 3 --strike-runs 1
 
 # How fast a SIGKILLed and restarted process is heard, per DDS setting.
 discovery: $(STAMP)

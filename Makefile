@@ -8,12 +8,12 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint eval bench discovery faults clean
+.PHONY: demo test lint eval bench discovery faults lean clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet -e '.[dev,eval]'
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -53,6 +53,10 @@ bench: $(STAMP)
 	$(PY) -m rory_eval.message_cost_bench --input tick --runs 5
 	$(PY) -m rory_eval.hot_path_bench
 	$(PY) -m rory_eval.stack_bench --runs 3 --strike-runs 1
+
+# What a robot installs: the runtime alone (no extras) in a clean venv, crashed and recovered.
+lean: $(STAMP)
+	$(PY) -m rory_eval.lean_install
 
 # How fast a SIGKILLed and restarted process is heard, per DDS setting.
 discovery: $(STAMP)

@@ -24,9 +24,24 @@ def _supervise(args: argparse.Namespace) -> int:
     return supervise(args.config, ros_args=args.ros_args, start=start)
 
 
+EXTRAS = {'sim': ('mujoco',), 'eval': ('mujoco', 'matplotlib')}
+"""What ``rory sim`` and ``rory eval`` need beyond the runtime (pyproject.toml's extras)."""
+
+
+def _missing_extra(command: str) -> str:
+    """The modules of ``command``'s extra that cannot be imported here, named; '' if none."""
+    import importlib.util
+
+    return ', '.join(m for m in EXTRAS[command] if importlib.util.find_spec(m) is None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``rory`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] in (['sim'], ['eval']) and (missing := _missing_extra(argv[0])):
+        print(f'rory: error: rory {argv[0]} needs {missing}, not installed with the runtime: '
+              f"pip install 'rory-ros2[{argv[0]}]'", file=sys.stderr)
+        return 2
     if argv[:1] == ['sim']:
         # The simulator has its own parser (sim/cli.py); imported lazily so that supervising
         # a node never loads MuJoCo.

@@ -96,7 +96,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     venv = (args.venv or root / 'venv').resolve()
     try:
         _run([sys.executable, '-m', 'venv', str(venv)])
-        _run([str(venv / 'bin' / 'python'), '-m', 'pip', 'install', '--quiet', str(REPO)])
+        # From a copy: pip builds in the source tree, and the checkout stays as it was.
+        source = root / 'source'
+        shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
+            '.git', '.venv', 'build', '*.egg-info', '__pycache__', '.*_cache', '*-out'))
+        _run([str(venv / 'bin' / 'python'), '-m', 'pip', 'install', '--quiet', str(source)])
         site = _site_packages(venv)
         present = [m for m in ('mujoco', 'matplotlib') if (site / m).exists()]
         if present:

@@ -11,8 +11,9 @@ def fast_rediscovery_env(environ: Mapping[str, str] | None = None) -> dict[str, 
     """Environment for every process of a robot run under RORY (supervisor and nodes alike).
 
     UDPv4 only: after a SIGKILL, Fast DDS's shared-memory transport left the restarted process
-    unheard for a median 2.8 s here, against 54 ms over UDPv4 (FACTS.md), and a process killed
-    holding a shared-memory port's mutex blocks every writer to that port for seconds
+    unheard for a median 2.8 s here, against 54 ms over UDPv4 (``python -m
+    rory_eval.discovery``), and a process killed holding a shared-memory port's mutex blocks
+    every writer to that port for seconds
     (fast_rediscovery_localhost.xml). ``FASTDDS_BUILTIN_TRANSPORTS`` says UDPv4 - except under
     ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, where rmw_fastrtps brings shared memory back
     whatever the variable says; there the same reach is made with range SUBNET and a profile

@@ -204,7 +204,6 @@ class Timings:
     restore_ms: float = 0.0
     synced: float | None = None
     release_sent: float | None = None
-    released: float | None = None
     s4_done: float | None = None
 
     def breakdown(self) -> dict[str, float]:
@@ -373,7 +372,6 @@ class Recovery:
     rlog: RecoveryLog | None = None
     streamer: ReplayStreamer | None = None
     crashes: int = 1
-    stats: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.timings = Timings(crashed=self.crashed)
@@ -441,12 +439,10 @@ class Recovery:
         )
         self.streamer.start()
 
-    def s4_release(self, node_stats: dict[str, Any]) -> dict[str, float]:
+    def s4_release(self) -> dict[str, float]:
         """S4: the node is released; leave the safe state. Returns the timing breakdown."""
-        self.timings.released = time.monotonic()
         self.safety.release(self.node_id)
         self.timings.s4_done = time.monotonic()
-        self.stats = dict(node_stats)
         return self.timings.breakdown()
 
     def input_gaps(self, trustworthy: Callable[[InputGap], bool]) -> list[InputGap]:

@@ -69,7 +69,7 @@ TRANSITIONS: Final[dict[NodeState, frozenset[NodeState]]] = {
                             S.STOPPING}),
     S.REPLAYING: frozenset({S.RUNNING, S.GATED, S.CRASHED, S.EXITED, S.STOPPING}),
     S.GATED: frozenset({S.RUNNING, S.CRASHED, S.EXITED, S.FATAL, S.STOPPING}),
-    S.EXITED: frozenset({S.RESTORING, S.STOPPING}),
+    S.EXITED: frozenset({S.STOPPING}),
     S.FATAL: frozenset({S.STOPPING}),
     S.STOPPING: frozenset({S.STOPPED}),
 }

@@ -9,7 +9,6 @@ recovering nodes; one streamer thread per recovery feeds a shadow topic.
 from __future__ import annotations
 
 import contextlib
-import itertools
 import json
 import logging
 import os
@@ -71,6 +70,8 @@ SYNC_PERIOD = 0.05
 """Seconds between SYNC envelopes until the node answers (DDS discovery of a new process)."""
 
 STOP_GRACE = (3.0, 2.0)
+"""Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
+
 HELLO_TIMEOUT = 10.0
 """Seconds a new process may beat without its HELLO reaching the supervisor. Its runtime sends
 HELLO right after its first callback, so a beating node whose HELLO never arrives is one whose
@@ -102,19 +103,19 @@ OVERDUE_INTERVALS = 3
 CHECKPOINT_FAILURE_RE = re.compile(r'checkpoint (skipped|\d+ not written)')
 
 HANG_DUMP_GRACE = 0.3
-# A heartbeat this late (3 beats; at most half of hang_timeout) may be a hang: the ring starts
-# taking the node's inputs (S2 early). A hang lasts hang_timeout before the kill, longer than
-# the ring's history covers on a busy topic (node depth + 16 messages: 2.3 s of 50 Hz odometry
-# for a depth of 100); from here on nothing is dropped however long the hang.
-STALL_SUSPECT = 0.6
 """Seconds between SIGUSR1 (a hung node prints its threads' stacks) and SIGKILL."""
 
-# States in which a node has a process that must beat.
+STALL_SUSPECT = 0.6
+"""A heartbeat this late (3 beats; at most half of hang_timeout) may be a hang: the ring starts
+taking the node's inputs (S2 early). A hang lasts hang_timeout before the kill, longer than
+the ring's history covers on a busy topic (node depth + 16 messages: 2.3 s of 50 Hz odometry
+for a depth of 100); from here on nothing is dropped however long the hang."""
+
 _LIVE = frozenset({
     NodeState.STARTING, NodeState.ARMING, NodeState.RUNNING, NodeState.RESTORING,
     NodeState.REPLAYING, NodeState.GATED,
 })
-"""Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
+"""States in which a node has a process that must beat."""
 
 
 # -- events, all handled on the main thread ------------------------------------------------------
@@ -736,7 +737,7 @@ class ManagedNode:
             gate_reason = self.gate_reason or None
             self.gated_at, self.gate_deadline, self.gate_called = None, None, False
             self.open_sent, self.gate_reason = False, ''
-            timing = rec.s4_release(stats)
+            timing = rec.s4_release()
             self.last_recovery = (timing['total_ms'], time.monotonic())
             self.sm.change_state(NodeState.RUNNING, 'released')
             gated = '' if gate_ms is None else f'; gated {gate_ms / 1000:.1f} s, {gate_reason}'
@@ -1261,7 +1262,7 @@ class Supervisor:
                     _logger.exception('%s executor error', LOG_PREFIX)
 
     def _loop(self) -> int:
-        for _ in itertools.count():
+        while True:
             quiet = all(n.sm.state in _QUIET for n in self.nodes.values())
             try:
                 event = self.events.get(timeout=IDLE_TICK if quiet else FAST_TICK)
@@ -1288,4 +1289,3 @@ class Supervisor:
                 failed = NodeState.FATAL in states
                 _logger.info('%s all nodes have ended%s', LOG_PREFIX, ' (FATAL)' if failed else '')
                 return 1 if failed else 0
-        return 0

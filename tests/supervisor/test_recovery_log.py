@@ -258,7 +258,6 @@ def test_timings_breakdown() -> None:
         restore_ms=50.0,
         synced=100.260,
         release_sent=100.360,
-        released=100.370,
         s4_done=100.380,
     )
     assert t.breakdown() == pytest.approx(

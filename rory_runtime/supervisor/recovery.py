@@ -48,8 +48,8 @@ from ..protocol import (
 )
 from ..store import CheckpointStore
 from .lineage import Admission, InputGap, SequenceWatch, Verdict
+from .ports import SafetyPort
 from .ring import Ring
-from .safety import SafeState
 from .states import LOG_PREFIX
 
 _logger = logging.getLogger('rory.supervisor')
@@ -364,7 +364,7 @@ class Recovery:
     node_id: str
     crashed: float  # monotonic
     crashed_ns: int  # time.time_ns() at the crash, the clock of message receive times
-    safety: SafeState
+    safety: SafetyPort
     ring: Ring | None
     segments: SegmentStore
     checkpoints: CheckpointStore

@@ -52,6 +52,7 @@ from .output import OutputPrefixer
 from .parameters import NODE_NAME as SUPERVISOR_NODE
 from .parameters import apply_parameters, own_ros_args
 from .poison import PoisonGuard
+from .ports import SupervisorPorts
 from .process import Child, Launcher, RestartPolicy, describe_exit
 from .recovery import Recovery
 from .ring import Capture, Ring, RingContext
@@ -213,11 +214,13 @@ class EventLog:
 class ManagedNode:
     """One supervised node: its process, its state, its ring and its recovery."""
 
-    def __init__(self, sup: Supervisor, cfg: NodeConfig) -> None:
+    def __init__(self, sup: SupervisorPorts, cfg: NodeConfig) -> None:
         self.sup = sup
         self.cfg = cfg
         self.id = cfg.name
-        self.sm = NodeStateMachine(cfg.name, _logger, listeners=[self._on_state])
+        self._now = sup.clock  # monotonic seconds (a unit test's fake clock)
+        self.sm = NodeStateMachine(cfg.name, _logger, clock=sup.clock,
+                                   listeners=[self._on_state])
         self.policy = RestartPolicy(cfg.backoff)
         self.child: Child | None = None
         self.incarnation = 0
@@ -296,6 +299,9 @@ class ManagedNode:
 
     # -- process life -------------------------------------------------------------------------
 
+    def _now_ns(self) -> int:
+        return int(self._now() * 1e9)
+
     def _on_state(self, event: StateEvent) -> None:
         self.sup.events_log.write(
             'state', self.id, old=event.old.value, new=event.new.value, reason=event.reason,
@@ -334,7 +340,7 @@ class ManagedNode:
         self.hello = None
         self.checkpoint_error = None
         self.overdue_said = False
-        self.spawned_ns = time.monotonic_ns()
+        self.spawned_ns = self._now_ns()
         self.first_beat_ns = None
         self.hang_kill_at = None
         self.hung_for = None
@@ -364,7 +370,7 @@ class ManagedNode:
         def reap() -> None:
             code = child.wait()
             self.sup.events.put(
-                ChildExited(self.id, incarnation, code, time.monotonic(), time.time_ns())
+                ChildExited(self.id, incarnation, code, self._now(), time.time_ns())
             )
 
         threading.Thread(target=reap, name=f'rory-reap-{self.id}', daemon=True).start()
@@ -400,7 +406,7 @@ class ManagedNode:
         disk; what its inputs published while no supervisor ran was recorded by nobody, and
         the event says for how long that was.
         """
-        now = time.monotonic()
+        now = self._now()
         gap = None if down_since is None else max(0.0, time.time() - down_since)
         self.sup.events_log.write('resumed', self.id, unrecorded_s=gap)
         _logger.warning(
@@ -449,7 +455,7 @@ class ManagedNode:
                           crashes=self.policy.consecutive)
             return
         if delay > 0:
-            self.restart_at = time.monotonic() + delay
+            self.restart_at = self._now() + delay
             self.sm.change_state(NodeState.BACKOFF, f'restart in {delay:.1f} s')
         else:
             self._restart()
@@ -545,7 +551,7 @@ class ManagedNode:
                 status.get('seq'), status.get('cut'), status.get('bytes'),
                 float(status.get('stall_ms', 0.0)),
             )
-            self.last_checkpoint_at = time.monotonic()
+            self.last_checkpoint_at = self._now()
             self.checkpoint_error = None
             self.overdue_said = False
             self.sup.events_log.write('checkpoint', self.id, **_fields(status))
@@ -638,7 +644,7 @@ class ManagedNode:
             self.ring.ensure(self.inputs)
 
     def _send_sync(self) -> None:
-        self.sync_sent = time.monotonic()
+        self.sync_sent = self._now()
         assert self.replay_pub is not None  # made by spawn()
         self.replay_pub.publish(protocol.pack_sync(self.incarnation, self.sync_nonce))
 
@@ -672,7 +678,7 @@ class ManagedNode:
         return all(counts.get(t, 0) >= n for t, n in self.synced_counts.items())
 
     def _on_released(self, status: dict[str, Any]) -> None:
-        self.running_since = time.monotonic()
+        self.running_since = self._now()
         stats = {k: status.get(k) for k in ('applied', 'replayed', 'duplicates', 'muted',
                                              'ticks_replayed', 'clock_fallbacks',
                                              'parameter_changes_replayed',
@@ -688,7 +694,7 @@ class ManagedNode:
         gate = self.cfg.release_gate
         assert gate is not None
         self.gated_stats = stats
-        self.gated_at = time.monotonic()
+        self.gated_at = self._now()
         self.open_sent = False
         self.gate_deadline = None if gate.timeout is None else self.gated_at + gate.timeout
         limit = ('' if gate.timeout is None
@@ -712,7 +718,7 @@ class ManagedNode:
     def _send_open(self) -> None:
         # Sent again each SYNC_PERIOD until OPENED: under restart and checkpoint no SYNC has
         # proved the shadow path, and an OPEN sent before the node's reader matched is lost.
-        self.open_sent_at = time.monotonic()
+        self.open_sent_at = self._now()
         assert self.replay_pub is not None  # made by spawn()
         self.replay_pub.publish(protocol.pack_open(self.incarnation))
 
@@ -733,12 +739,12 @@ class ManagedNode:
         if rec is not None and self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING,
                                                  NodeState.GATED):
             gate_ms = (None if self.gated_at is None
-                       else round((time.monotonic() - self.gated_at) * 1000.0, 1))
+                       else round((self._now() - self.gated_at) * 1000.0, 1))
             gate_reason = self.gate_reason or None
             self.gated_at, self.gate_deadline, self.gate_called = None, None, False
             self.open_sent, self.gate_reason = False, ''
             timing = rec.s4_release()
-            self.last_recovery = (timing['total_ms'], time.monotonic())
+            self.last_recovery = (timing['total_ms'], self._now())
             self.sm.change_state(NodeState.RUNNING, 'released')
             gated = '' if gate_ms is None else f'; gated {gate_ms / 1000:.1f} s, {gate_reason}'
             _logger.info(
@@ -929,8 +935,8 @@ class ManagedNode:
                 self.hang_kill_at = float('inf')  # once; its exit is reaped as a crash
                 child.send_signal(signal.SIGKILL)
             return
-        now_ns = time.monotonic_ns()
-        beat = read_beat(self.slot)
+        now_ns = self._now_ns()
+        beat = self.sup.read_beat(self.slot)
         if beat is None or beat < self.spawned_ns:
             # Not beating yet: still importing, initialising, constructing the node.
             limit, since, what = self.cfg.start_timeout, self.spawned_ns, 'start'
@@ -1054,6 +1060,11 @@ class Supervisor:
         self._ring_ctx: RingContext | None = None
         self._stopping = False
         self.channel = protocol.DEFAULT_CHANNEL  # set from its node's namespace in run()
+        self.clock: Callable[[], float] = time.monotonic
+
+    def read_beat(self, slot: Path) -> int | None:
+        """A node's last heartbeat (inflight.py), ``time.monotonic_ns()``; None before one."""
+        return read_beat(slot)
 
     # called from other threads
     def post_status(self, node_id: str, text: str) -> None:
@@ -1279,7 +1290,7 @@ class Supervisor:
                 pass  # the node's RELEASED status ends the recovery; this only marks the send
             elif isinstance(event, GateCall):
                 event.reply.put(self.nodes[event.node].on_gate_call())
-            now = time.monotonic()
+            now = self.clock()
             for node in self.nodes.values():
                 node.tick(now)
             if self.reporter.due(now):

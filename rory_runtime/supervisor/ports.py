@@ -1,0 +1,124 @@
+"""What a supervised node (:class:`~.supervisor.ManagedNode`) needs from its supervisor.
+
+The supervisor's per-node decisions (crash, hang, backoff, give-up, recovery steps, the release
+gate) run in ``ManagedNode``, driven by three entry points on the main thread: ``on_exit``,
+``on_status`` and ``tick``. Everything they reach outside themselves goes through this
+protocol: the clock, the launcher, the event log, the safe state, the ring, and the few rclpy
+calls that make the node's status reader, shadow-topic writer and release service. The real
+:class:`~.supervisor.Supervisor` provides them; tests/supervisor/fake_supervisor.py provides
+fakes, so those decisions are unit-tested without a ROS process (tests/supervisor/
+test_managed_node.py), as supervisord tests its process logic.
+"""
+
+from __future__ import annotations
+
+import queue
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Protocol
+
+from .config import SupervisorConfig
+from .process import Launcher
+from .ring import Ring
+
+
+class EventSink(Protocol):
+    """``events.jsonl``, /rory/events and whatever else listens."""
+
+    def write(self, kind: str, node: str, **fields: Any) -> None:
+        """Record one event."""
+        ...
+
+
+class SafetyPort(Protocol):
+    """The safe state, held from a node's S1 until its S4 (``safety.SafeState``)."""
+
+    def hold(self, node_id: str) -> None:
+        """Hold it for this node (published at once if no one held it)."""
+        ...
+
+    def release(self, node_id: str) -> None:
+        """This node no longer needs it (released when no node does)."""
+        ...
+
+
+class RosPort(Protocol):
+    """The rclpy node calls a managed node makes on the supervisor's own node."""
+
+    def create_subscription(self, msg_type: Any, topic: str, callback: Any,
+                            qos_profile: Any) -> Any:
+        """The node's status reader."""
+        ...
+
+    def create_publisher(self, msg_type: Any, topic: str, qos_profile: Any) -> Any:
+        """A shadow-topic writer."""
+        ...
+
+    def destroy_publisher(self, publisher: Any) -> Any:
+        """An earlier incarnation's shadow-topic writer, retired."""
+        ...
+
+    def create_service(self, srv_type: Any, srv_name: str, callback: Any) -> Any:
+        """The release gate's service."""
+        ...
+
+
+class SupervisorPorts(Protocol):
+    """The supervisor as a managed node sees it."""
+
+    @property
+    def config(self) -> SupervisorConfig:
+        """The whole configuration (store, folder, every node)."""
+        ...
+
+    @property
+    def clock(self) -> Callable[[], float]:
+        """Monotonic seconds."""
+        ...
+
+    @property
+    def launcher(self) -> Launcher:
+        """Starts node processes."""
+        ...
+
+    @property
+    def events_log(self) -> EventSink:
+        """Where events go."""
+        ...
+
+    @property
+    def events(self) -> queue.Queue[Any]:
+        """The main loop's queue (child exits, releases, gate calls)."""
+        ...
+
+    @property
+    def safety(self) -> SafetyPort:
+        """The safe state."""
+        ...
+
+    @property
+    def ros_node(self) -> RosPort:
+        """The supervisor's rclpy node."""
+        ...
+
+    @property
+    def channel(self) -> str:
+        """The namespace of the topics between supervisor and nodes (``/rory``)."""
+        ...
+
+    @property
+    def secret(self) -> bytes:
+        """This run's key: envelopes and statuses are signed with it."""
+        ...
+
+    def read_beat(self, slot: Path) -> int | None:
+        """A node's last heartbeat on the clock's scale, in ns; None before its first."""
+        ...
+
+    def make_ring(self, node_id: str) -> Ring:
+        """A ring for one node's inputs."""
+        ...
+
+    def post_status(self, node_id: str, text: str) -> None:
+        """Queue a status message (from the status reader's thread)."""
+        ...

@@ -1,0 +1,303 @@
+"""Fakes of the supervisor's ports (rory_runtime/supervisor/ports.py): a managed node's
+decisions driven by hand, with no ROS process, no DDS and no real child process.
+
+``Harness`` holds one ``ManagedNode`` over a fake clock, launcher, event log, safe state, ring
+and rclpy node; a test starts it, feeds it statuses and exits as a node process would, and
+reads back what the supervisor did (states, events, signals, envelopes, the safe state).
+"""
+
+from __future__ import annotations
+
+import queue
+import signal
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from rory_runtime import protocol
+from rory_runtime.supervisor.config import SupervisorConfig, load_config
+from rory_runtime.supervisor.ring import Ring
+from rory_runtime.supervisor.supervisor import ChildExited, GateCall, ManagedNode
+
+
+class FakeClock:
+    """Monotonic seconds that move only when told."""
+
+    def __init__(self, start: float = 1000.0) -> None:
+        self.now = start
+
+    def __call__(self) -> float:
+        return self.now
+
+    def advance(self, seconds: float) -> float:
+        self.now += seconds
+        return self.now
+
+
+class FakeChild:
+    """A node process: ends when the test says, or on SIGKILL; records every signal."""
+
+    def __init__(self, pid: int, argv: list[str], env: dict[str, str]) -> None:
+        self.pid = pid
+        self.argv = argv
+        self.env = env
+        self.signals: list[int] = []
+        self.warm = False
+        self.why_cold = 'fake'
+        self._code: int | None = None
+        self._done = threading.Event()
+
+    def finish(self, code: int) -> None:
+        if self._code is None:
+            self._code = code
+        self._done.set()
+
+    def wait(self, timeout: float | None = None) -> int:
+        self._done.wait(timeout)
+        assert self._code is not None
+        return self._code
+
+    def poll(self) -> int | None:
+        return self._code
+
+    def send_signal(self, sig: int) -> None:
+        self.signals.append(sig)
+        if sig == signal.SIGKILL:
+            self.finish(-signal.SIGKILL)
+
+
+class FakeLauncher:
+    """Starts FakeChild processes; a standby only when ``standby`` is set."""
+
+    def __init__(self) -> None:
+        self.children: list[FakeChild] = []
+        self.standby = False
+        self.prepared: list[list[str]] = []
+
+    def spawn(self, argv: Any, env: Any, cwd: Path, label: str = '') -> FakeChild:
+        child = FakeChild(100 + len(self.children), list(argv), dict(env))
+        self.children.append(child)
+        return child
+
+    def prepare(self, argv: Any, env: Any, cwd: Path) -> int | None:
+        self.prepared.append(list(argv))
+        return 999 if self.standby else None
+
+    def discard(self, argv: Any, cwd: Path) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class FakeEvents:
+    """events.jsonl, kept in memory."""
+
+    def __init__(self, clock: FakeClock) -> None:
+        self.records: list[dict[str, Any]] = []
+        self._clock = clock
+
+    def write(self, kind: str, node: str, **fields: Any) -> None:
+        self.records.append({'t': self._clock(), 'kind': kind, 'node': node, **fields})
+
+    def of(self, kind: str) -> list[dict[str, Any]]:
+        return [r for r in self.records if r['kind'] == kind]
+
+
+class FakeSafety:
+    """Who holds the safe state, and every hold and release in order."""
+
+    def __init__(self) -> None:
+        self.holders: set[str] = set()
+        self.log: list[tuple[str, str]] = []
+
+    def hold(self, node_id: str) -> None:
+        self.holders.add(node_id)
+        self.log.append(('hold', node_id))
+
+    def release(self, node_id: str) -> None:
+        if node_id in self.holders:
+            self.holders.discard(node_id)
+            self.log.append(('release', node_id))
+
+    @property
+    def held(self) -> bool:
+        return bool(self.holders)
+
+
+class FakePublisher:
+    def __init__(self, topic: str) -> None:
+        self.topic = topic
+        self.sent: list[Any] = []
+
+    def publish(self, msg: Any) -> None:
+        self.sent.append(msg)
+
+
+class FakeRosNode:
+    """The supervisor's rclpy node: publishers that record, a service kept for calling."""
+
+    def __init__(self) -> None:
+        self.publishers: list[FakePublisher] = []
+        self.services: dict[str, Callable[[Any, Any], Any]] = {}
+
+    def create_subscription(self, msg_type: Any, topic: str, callback: Any,
+                            qos_profile: Any) -> Any:
+        return object()
+
+    def create_publisher(self, msg_type: Any, topic: str, qos_profile: Any) -> FakePublisher:
+        publisher = FakePublisher(topic)
+        self.publishers.append(publisher)
+        return publisher
+
+    def destroy_publisher(self, publisher: Any) -> None:
+        pass
+
+    def create_service(self, srv_type: Any, srv_name: str, callback: Any) -> Any:
+        self.services[srv_name] = callback
+        return object()
+
+
+class FakeRing:
+    """A ring whose readers always match; activation only recorded."""
+
+    def __init__(self) -> None:
+        self.topics: dict[str, Any] = {}
+        self.active_topics: set[str] = set()
+        self.activations = 0
+
+    def ensure(self, inputs: Any) -> None:
+        pass
+
+    def publisher_counts(self) -> dict[str, int]:
+        return {}
+
+    def offered_qos(self, topic: str) -> Any:
+        return None
+
+    def publisher_count(self, topic: str) -> int:
+        return 1
+
+    def activate(self, sink: Any, early: Any = None) -> None:
+        self.activations += 1
+
+    def deactivate(self, topic: str | None = None) -> None:
+        pass
+
+
+class FakeSupervisor:
+    """Every port a ManagedNode uses (SupervisorPorts), faked."""
+
+    def __init__(self, config: SupervisorConfig) -> None:
+        self.config = config
+        self.clock = FakeClock()
+        self.launcher = FakeLauncher()
+        self.events_log = FakeEvents(self.clock)
+        self.events: queue.Queue[Any] = queue.Queue()
+        self.safety = FakeSafety()
+        self.ros_node = FakeRosNode()
+        self.channel = protocol.DEFAULT_CHANNEL
+        self.secret = b'k' * 32
+        self.beats: dict[Path, int] = {}
+        self.rings: list[FakeRing] = []
+
+    def read_beat(self, slot: Path) -> int | None:
+        return self.beats.get(slot)
+
+    def make_ring(self, node_id: str) -> Ring:
+        ring = FakeRing()
+        self.rings.append(ring)
+        return ring  # type: ignore[return-value]
+
+    def post_status(self, node_id: str, text: str) -> None:
+        pass
+
+
+RELEASED_STATS = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0,
+                  'ticks_replayed': 0, 'clock_fallbacks': 0, 'parameter_changes_replayed': 0,
+                  'requests_replayed': 0}
+
+
+class Harness:
+    """One managed node over fakes. ``node`` is the supervisor.yaml entry's fields."""
+
+    def __init__(self, tmp_path: Path, **node: Any) -> None:
+        entry = {'name': 'n', 'command': ['true'], 'method': 'restart', 'warm_standby': False,
+                 **node}
+        path = tmp_path / 'supervise.yaml'
+        path.write_text(yaml.safe_dump({'nodes': [entry], 'store': 'store'}))
+        self.sup = FakeSupervisor(load_config(path))
+        self.node = ManagedNode(self.sup, self.sup.config.nodes[0])  # type: ignore[arg-type]
+
+    @property
+    def clock(self) -> FakeClock:
+        return self.sup.clock
+
+    @property
+    def child(self) -> FakeChild:
+        return self.sup.launcher.children[-1]
+
+    def states(self) -> list[str]:
+        return [r['new'] for r in self.sup.events_log.of('state')]
+
+    def status(self, kind: str, **fields: Any) -> None:
+        self.node.on_status({'kind': kind, 'node': self.node.id,
+                             'incarnation': self.node.incarnation, **fields})
+
+    def hello(self, **fields: Any) -> None:
+        self.status('hello', **{'inputs': [], 'restored': None, 'refused': [],
+                                'restore_ms': 1.0, **fields})
+
+    def released(self, **stats: Any) -> None:
+        self.status('released', **{**RELEASED_STATS, **stats})
+
+    def up(self) -> None:
+        """HELLO and RELEASED: the process came up (restart and checkpoint release at once)."""
+        self.hello()
+        self.released()
+
+    def beat(self, at: float | None = None) -> None:
+        """The node's heartbeat, now (or at ``at`` seconds) on the fake clock."""
+        self.sup.beats[self.node.slot] = int((self.clock() if at is None else at) * 1e9)
+
+    def exit(self, code: int) -> None:
+        """The current process ends with ``code``; the supervisor hears it."""
+        self.child.finish(code)
+        self.reap()
+
+    def reap(self) -> None:
+        """Deliver the exit the reaper thread posted."""
+        event = self.sup.events.get(timeout=5.0)
+        assert isinstance(event, ChildExited), event
+        self.node.on_exit(event)
+
+    def tick(self, seconds: float = 0.0) -> None:
+        self.node.tick(self.clock.advance(seconds))
+
+    def call_release(self) -> tuple[bool, str]:
+        """A call on the release gate service, answered as the main loop would."""
+        answer: dict[str, tuple[bool, str]] = {}
+
+        class Response:
+            success = False
+            message = ''
+
+        def call() -> None:
+            response = self.sup.ros_node.services[self.node.gate_service](None, Response())
+            answer['reply'] = (response.success, response.message)
+
+        caller = threading.Thread(target=call)
+        caller.start()
+        event = self.sup.events.get(timeout=5.0)
+        assert isinstance(event, GateCall)
+        event.reply.put(self.node.on_gate_call())
+        caller.join(timeout=5.0)
+        return answer['reply']
+
+    def envelopes(self) -> list[Any]:
+        """What the supervisor sent on the current process's shadow topic, unpacked."""
+        writer = self.sup.ros_node.publishers[-1]
+        return [protocol.unpack(raw, self.sup.secret) for raw in writer.sent]

@@ -1,0 +1,260 @@
+"""The supervisor's per-node decisions with fakes for every port (fake_supervisor.py): no ROS
+process, no DDS, a clock that moves when told. Crashes in each state, hangs, backoff and its
+reset, giving up, a second crash during a recovery, a supervisor restarted on its store, the
+release gate and a refused stale checkpoint."""
+
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+
+import pytest
+from fake_supervisor import Harness
+
+from rory_runtime import protocol
+from rory_runtime.supervisor.states import NodeState
+from rory_runtime.supervisor.supervisor import HANG_DUMP_GRACE, HELLO_TIMEOUT
+
+S = NodeState
+
+
+def _started(tmp_path: Path, **node: object) -> Harness:
+    h = Harness(tmp_path, **node)
+    h.node.start()
+    h.beat()
+    h.up()
+    assert h.node.sm.state == S.RUNNING
+    return h
+
+
+def test_a_fresh_start_runs_once_the_process_says_released(tmp_path: Path) -> None:
+    h = Harness(tmp_path)
+    h.node.start()
+    assert h.node.sm.state == S.STARTING and len(h.sup.launcher.children) == 1
+    assert h.child.env[protocol.ENV_MODE] == 'fresh' and h.child.env[protocol.ENV_NODE] == 'n'
+    h.hello()
+    assert h.node.sm.state == S.STARTING  # restart releases itself: RELEASED comes next
+    h.released()
+    assert h.states() == ['STARTING', 'RUNNING']
+    assert not h.sup.safety.log  # a fresh start holds nothing
+
+
+def test_a_crash_while_running_holds_the_safe_state_until_the_new_process_is_released(
+    tmp_path: Path
+) -> None:
+    h = _started(tmp_path)
+    h.exit(-signal.SIGKILL)
+    assert h.states()[-2:] == ['CRASHED', 'RESTORING']
+    assert h.sup.safety.holders == {'n'}
+    assert len(h.sup.launcher.children) == 2 and h.child.env[protocol.ENV_MODE] == 'recover'
+    assert h.child.env[protocol.ENV_INCARNATION] == '2'
+    h.up()
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == [('hold', 'n'), ('release', 'n')]
+    (recovered,) = h.sup.events_log.of('recovered')
+    assert recovered['crashes'] == 1 and recovered['incarnation'] == 2
+
+
+def test_a_clean_exit_is_the_node_finishing_not_a_crash(tmp_path: Path) -> None:
+    h = _started(tmp_path)
+    h.exit(0)
+    assert h.node.sm.state == S.EXITED and len(h.sup.launcher.children) == 1
+    assert not h.sup.safety.log
+
+
+def test_a_crash_during_the_first_start_is_recovered_like_any_other(tmp_path: Path) -> None:
+    h = Harness(tmp_path)
+    h.node.start()
+    h.exit(1)
+    assert h.states() == ['STARTING', 'CRASHED', 'RESTORING'] and h.sup.safety.holders == {'n'}
+    h.up()
+    assert h.node.sm.state == S.RUNNING and not h.sup.safety.holders
+
+
+@pytest.mark.parametrize('before', ['hello', 'nothing'])
+def test_a_second_crash_before_the_release_is_the_same_recovery_after_a_backoff(
+    tmp_path: Path, before: str
+) -> None:
+    h = _started(tmp_path)
+    h.exit(-signal.SIGSEGV)
+    if before == 'hello':
+        h.hello()
+    h.exit(1)
+    assert h.states()[-3:] == ['RESTORING', 'CRASHED', 'BACKOFF']
+    assert h.sup.safety.holders == {'n'}  # held throughout: one episode
+    h.tick(0.4)
+    assert h.node.sm.state == S.BACKOFF and len(h.sup.launcher.children) == 2
+    h.tick(0.2)  # the second consecutive crash waits backoff.step (0.5 s)
+    assert h.node.sm.state == S.RESTORING and len(h.sup.launcher.children) == 3
+    h.up()
+    (recovered,) = h.sup.events_log.of('recovered')
+    assert recovered['crashes'] == 2 and h.sup.safety.log == [('hold', 'n'), ('release', 'n')]
+
+
+def test_a_crash_loop_backs_off_doubling_then_gives_up_holding_the_safe_state(
+    tmp_path: Path
+) -> None:
+    h = _started(tmp_path, backoff={'max_restarts': 3, 'step': 0.5, 'maximum': 8})
+    delays = []
+    for _ in range(3):
+        h.exit(1)
+        if h.node.sm.state == S.BACKOFF:
+            delays.append(h.node.restart_at - h.clock())  # type: ignore[operator]
+            h.tick(10.0)
+        assert h.node.sm.state == S.RESTORING
+    assert delays == [0.5, 1.0]  # the first restart at once, then 0.5 s doubling
+    h.exit(1)
+    assert h.node.sm.state == S.FATAL and '3 restarts in a row failed' in h.states()[-1] + (
+        h.sup.events_log.of('fatal')[0]['reason'])
+    assert h.sup.safety.holders == {'n'}  # nothing will release it
+    assert len(h.sup.launcher.children) == 4
+
+
+def test_a_start_that_ran_stable_after_resets_the_crash_count(tmp_path: Path) -> None:
+    h = _started(tmp_path, backoff={'max_restarts': 2, 'stable_after': 10})
+    for _ in range(5):  # each crash after a long stable run: never a loop
+        h.tick(11.0)
+        h.beat()
+        h.exit(1)
+        assert h.node.sm.state == S.RESTORING  # restarted at once, no backoff
+        h.beat()
+        h.up()
+    assert not h.sup.events_log.of('fatal') and h.node.policy.consecutive == 1
+
+
+def test_a_hung_node_prints_its_stacks_then_is_killed_and_recovered(tmp_path: Path) -> None:
+    h = _started(tmp_path, hang_timeout=5.0)
+    h.tick(4.0)
+    assert h.child.signals == []
+    h.tick(1.5)  # 5.5 s without a beat
+    assert h.child.signals == [signal.SIGUSR1]
+    (hang,) = h.sup.events_log.of('hang')
+    assert hang['waiting_for'] == 'heartbeat' and hang['stalled_s'] == pytest.approx(5.5)
+    h.tick(HANG_DUMP_GRACE)
+    assert h.child.signals == [signal.SIGUSR1, signal.SIGKILL]
+    h.reap()
+    assert h.states()[-2:] == ['CRASHED', 'RESTORING']
+    assert 'hung (no heartbeat for 5.5 s)' in h.sup.events_log.of('state')[-2]['reason']
+
+
+def test_a_beating_node_is_not_hung_however_long_it_runs(tmp_path: Path) -> None:
+    h = _started(tmp_path, hang_timeout=5.0)
+    for _ in range(20):
+        h.tick(1.0)
+        h.beat()
+    assert h.child.signals == [] and h.node.sm.state == S.RUNNING
+
+
+def test_a_process_that_never_beats_is_killed_at_its_start_timeout(tmp_path: Path) -> None:
+    h = Harness(tmp_path, start_timeout=30.0)
+    h.node.start()
+    h.tick(29.0)
+    assert h.child.signals == []
+    h.tick(2.0)
+    assert h.child.signals == [signal.SIGKILL]  # no stack to print: it never got going
+    h.reap()
+    assert h.sup.events_log.of('hang')[0]['waiting_for'] == 'start'
+
+
+def test_a_process_beating_but_never_heard_is_replaced(tmp_path: Path) -> None:
+    h = Harness(tmp_path)
+    h.node.start()
+    h.beat()
+    h.tick(0.1)
+    for _ in range(int(HELLO_TIMEOUT) + 2):
+        h.beat()
+        h.tick(1.0)
+    assert signal.SIGKILL in h.child.signals
+
+
+def test_a_supervisor_restarted_on_its_store_resumes_the_node_as_a_recovery(
+    tmp_path: Path
+) -> None:
+    h = Harness(tmp_path, method='checkpoint')
+    h.node.start_resumed(down_since=None)
+    assert h.states() == ['RESTORING'] and h.sup.safety.holders == {'n'}
+    assert h.child.env[protocol.ENV_MODE] == 'recover'
+    assert h.sup.events_log.of('resumed')[0]['unrecorded_s'] is None
+    h.up()
+    assert h.node.sm.state == S.RUNNING and not h.sup.safety.holders
+
+
+GATE = {'release_gate': {'timeout': 30.0, 'on_timeout': 'give_up'}}
+
+
+def test_a_gated_node_waits_for_the_call_then_opens_and_releases_the_safe_state(
+    tmp_path: Path
+) -> None:
+    h = _started(tmp_path, **GATE)
+    assert h.call_release() == (False, 'n: RUNNING, no recovery waits for release')
+    h.exit(-signal.SIGKILL)
+    assert h.child.env[protocol.ENV_GATED] == '1'
+    h.up()
+    assert h.node.sm.state == S.GATED and h.sup.safety.holders == {'n'}
+    assert not h.sup.events_log.of('recovered')
+    h.tick(10.0)
+    assert h.node.sm.state == S.GATED and h.envelopes() == []
+    assert h.call_release() == (True, 'n: released')
+    assert h.envelopes() == [protocol.Open(2)]
+    h.tick(0.06)  # no OPENED yet: OPEN again (SYNC_PERIOD later)
+    assert h.envelopes() == [protocol.Open(2)] * 2
+    h.status('opened', muted=7)
+    assert h.node.sm.state == S.RUNNING and not h.sup.safety.holders
+    (recovered,) = h.sup.events_log.of('recovered')
+    assert recovered['gate_ms'] == pytest.approx(10060.0) and 'called' in recovered['gate']
+    assert h.sup.events_log.of('gate_opened')[0]['muted'] == 7
+
+
+def test_a_call_during_the_recovery_opens_the_gate_as_soon_as_it_is_reached(
+    tmp_path: Path
+) -> None:
+    h = _started(tmp_path, **GATE)
+    h.exit(-signal.SIGKILL)
+    assert h.call_release() == (True, 'n: restoring; released as soon as it has caught up')
+    h.up()
+    assert h.node.sm.state == S.GATED and h.envelopes() == [protocol.Open(2)]
+    h.status('opened', muted=0)
+    assert h.node.sm.state == S.RUNNING
+
+
+def test_a_gate_nobody_calls_gives_up_at_its_timeout_holding_the_safe_state(
+    tmp_path: Path
+) -> None:
+    h = _started(tmp_path, **GATE)
+    h.exit(-signal.SIGKILL)
+    h.up()
+    gated = h.child
+    for _ in range(29):  # live while it waits: beating
+        h.tick(1.0)
+        h.beat()
+        assert h.node.sm.state == S.GATED
+    h.tick(1.5)
+    assert h.node.sm.state == S.FATAL and gated.signals == [signal.SIGKILL]
+    assert 'within 30 s; on_timeout: give_up' in h.sup.events_log.of('fatal')[0]['reason']
+    assert h.sup.safety.holders == {'n'}
+    h.sup.events.get(timeout=5.0)  # its exit, reaped: ignored, it was ended on purpose
+    assert len(h.sup.launcher.children) == 2
+
+
+def test_a_crash_at_the_gate_is_a_crash_of_the_same_recovery(tmp_path: Path) -> None:
+    h = _started(tmp_path, **GATE)
+    h.exit(-signal.SIGKILL)
+    h.up()
+    h.exit(-signal.SIGKILL)
+    assert h.states()[-3:] == ['GATED', 'CRASHED', 'BACKOFF']
+    h.tick(1.0)
+    h.up()
+    assert h.node.sm.state == S.GATED and h.sup.safety.holders == {'n'}
+
+
+def test_a_stale_variable_under_refuse_stops_the_node_with_the_safe_state_held(
+    tmp_path: Path
+) -> None:
+    h = _started(tmp_path, method='checkpoint')
+    h.exit(-signal.SIGKILL)
+    verdict = {'age_s': 42.0, 'clock': 'system', 'restored': [], 'reset': [],
+               'kept_stale': [], 'refused': ['pose'], 'max_age': {'pose': 5.0}}
+    h.hello(restored={'seq': 3, 'cut': None, 'freshness': verdict})
+    assert h.node.sm.state == S.FATAL and h.child.signals == [signal.SIGKILL]
+    reason = h.sup.events_log.of('fatal')[0]['reason']
+    assert reason.startswith('checkpoint too old for pose (age 42.0 s on the system clock')
+    assert h.sup.safety.holders == {'n'} and h.node.health(h.clock()).fatal_reason == reason

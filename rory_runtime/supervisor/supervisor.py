@@ -211,6 +211,28 @@ class EventLog:
             self._file.close()
 
 
+@dataclass
+class Incarnation:
+    """What the supervisor knows of one process of a node; a new one at each spawn."""
+
+    number: int
+    spawned_ns: int  # the clock's ns when it was started
+    sync_nonce: int  # a SYNCED answering any SYNC with it proves the shadow path
+    hello: dict[str, Any] | None = None
+    first_beat_ns: int | None = None
+    hang_kill_at: float | None = None  # SIGKILL due (SIGUSR1 sent: a stack dump)
+    killed: bool = False  # SIGKILLed by the supervisor (hung, unheard, given up)
+    hung_for: float | None = None  # how long it had not beaten, once judged hung
+    kill_reason: str | None = None  # why the supervisor killed it
+    sync_sent: float = 0.0
+    synced_counts: dict[str, int] | None = None  # its live publishers per input, from SYNCED
+    release_sent: bool = False
+    # Its last checkpoint failure, until one succeeds; whether its checkpoints being overdue
+    # was said (once).
+    checkpoint_error: str | None = None
+    overdue_said: bool = False
+
+
 class ManagedNode:
     """One supervised node: its process, its state, its ring and its recovery."""
 
@@ -224,25 +246,17 @@ class ManagedNode:
         self.policy = RestartPolicy(cfg.backoff)
         self.child: Child | None = None
         self.incarnation = 0
+        # What belongs to the current process; a new one at each spawn.
+        self.current = Incarnation(0, 0, 0)
         self.inputs: list[InputSpec] = []
         self.ring: Ring | None = None
         self.recovery: Recovery | None = None
         self.running_since: float | None = None
         self.restart_at: float | None = None
-        self.sync_nonce = 0
-        self.sync_sent = 0.0
-        self.synced_counts: dict[str, int] | None = None
-        self.release_sent = False
-        self.hello: dict[str, Any] | None = None
         self.checkpoints = CheckpointStore(sup.config.store, cfg.name)
         self.segments = SegmentStore(sup.config.store, cfg.name)
         self.poison = PoisonGuard(sup.config.store, cfg.name, self.segments)
         self.slot = slot_path(sup.config.store, cfg.name)
-        self.spawned_ns = 0
-        self.first_beat_ns: int | None = None
-        self.hang_kill_at: float | None = None  # SIGKILL due (SIGUSR1 sent: a stack dump)
-        self.hung_for: float | None = None  # how long it had not beaten, once judged hung
-        self.kill_reason: str | None = None  # why the supervisor killed the current process
         self.resumed = False  # first started from the store of a run that did not stop
         self.standby_for: int | None = None  # the incarnation whose successor is on standby
         self.crashes_total = 0
@@ -251,10 +265,6 @@ class ManagedNode:
         self.early_capture: Capture | None = None
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
         self.last_checkpoint_at: float | None = None  # monotonic
-        # The current process's last checkpoint failure, until one succeeds; and whether its
-        # checkpoints being overdue was said (once per episode).
-        self.checkpoint_error: str | None = None
-        self.overdue_said = False
         # The shadow topic of the current process (protocol.replay_topic: one per incarnation),
         # made at each spawn; earlier ones are destroyed once no replay streams on them.
         self._replay_writer: Any = None
@@ -337,18 +347,8 @@ class ManagedNode:
     def spawn(self, mode: Mode) -> None:
         """Start a new process of this node (main thread only)."""
         self.incarnation += 1
-        self.hello = None
-        self.checkpoint_error = None
-        self.overdue_said = False
-        self.spawned_ns = self._now_ns()
-        self.first_beat_ns = None
-        self.hang_kill_at = None
-        self.hung_for = None
-        self.kill_reason = None
         # One nonce per process: a SYNCED that answers any of its SYNCs proves the path.
-        self.sync_nonce = random.getrandbits(63)
-        self.synced_counts = None
-        self.release_sent = False
+        self.current = Incarnation(self.incarnation, self._now_ns(), random.getrandbits(63))
         self._new_shadow_topic()
         env = self._env(mode, self.incarnation)
         child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder,
@@ -433,8 +433,8 @@ class ManagedNode:
             return  # (FATAL: a process the supervisor ended when it gave up)
         self.child = None
         how = describe_exit(ev.code)
-        if self.kill_reason is not None:
-            how = f'{self.kill_reason}, {how}'
+        if self.current.kill_reason is not None:
+            how = f'{self.current.kill_reason}, {how}'
         self.sup.events_log.write('exit', self.id, code=ev.code, incarnation=ev.incarnation)
         if ev.code == 0 and not self.cfg.restart_on_clean_exit:
             self.sm.change_state(NodeState.EXITED, how)
@@ -531,8 +531,9 @@ class ManagedNode:
         if kind == StatusKind.HELLO:
             self._on_hello(status)
         elif kind == StatusKind.SYNCED:
-            if status.get('nonce') == self.sync_nonce and self.synced_counts is None:
-                self.synced_counts = {
+            current = self.current
+            if status.get('nonce') == current.sync_nonce and current.synced_counts is None:
+                current.synced_counts = {
                     str(k): int(v) for k, v in dict(status.get('live_publishers', {})).items()
                 }
                 self._on_synced()
@@ -552,8 +553,8 @@ class ManagedNode:
                 float(status.get('stall_ms', 0.0)),
             )
             self.last_checkpoint_at = self._now()
-            self.checkpoint_error = None
-            self.overdue_said = False
+            self.current.checkpoint_error = None
+            self.current.overdue_said = False
             self.sup.events_log.write('checkpoint', self.id, **_fields(status))
         elif kind == StatusKind.SWITCHED:
             topic = str(status.get('topic'))
@@ -566,14 +567,14 @@ class ManagedNode:
         elif kind == StatusKind.ERROR:
             message = str(status.get('message'))
             if CHECKPOINT_FAILURE_RE.match(message):
-                self.checkpoint_error = message
+                self.current.checkpoint_error = message
             _logger.error('%s %s: %s', LOG_PREFIX, self.id, status.get('message'))
             self.sup.events_log.write('error', self.id, message=status.get('message'))
 
     def _on_hello(self, status: dict[str, Any]) -> None:
-        if self.hello is not None:
+        if self.current.hello is not None:
             return
-        self.hello = status
+        self.current.hello = status
         try:
             self.inputs = [InputSpec.from_json(i) for i in status.get('inputs', [])]
         except ProtocolError as err:
@@ -644,14 +645,14 @@ class ManagedNode:
             self.ring.ensure(self.inputs)
 
     def _send_sync(self) -> None:
-        self.sync_sent = self._now()
+        self.current.sync_sent = self._now()
         assert self.replay_pub is not None  # made by spawn()
-        self.replay_pub.publish(protocol.pack_sync(self.incarnation, self.sync_nonce))
+        self.replay_pub.publish(protocol.pack_sync(self.incarnation, self.current.sync_nonce))
 
     def _on_synced(self) -> None:
         if self.sm.state == NodeState.REPLAYING and self.recovery is not None:
-            assert self.hello is not None and self.replay_pub is not None
-            cut = (self.hello.get('restored') or {}).get('cut')
+            assert self.current.hello is not None and self.replay_pub is not None
+            cut = (self.current.hello.get('restored') or {}).get('cut')
             incarnation = self.incarnation
             self.recovery.s3_replay(
                 self.replay_pub, incarnation, cut, self._replay_pace(),
@@ -667,15 +668,15 @@ class ManagedNode:
         """
         if self.cfg.replay is not None:
             return self.cfg.replay
-        wanted = (self.hello or {}).get('replay')
+        wanted = (self.current.hello or {}).get('replay')
         return ReplayPace(wanted) if wanted in {p.value for p in ReplayPace} else ReplayPace.FAST
 
     def _armed(self) -> bool:
         """The ring matches every publisher the node's own readers have (fresh start)."""
-        if self.synced_counts is None or self.ring is None:
+        if self.current.synced_counts is None or self.ring is None:
             return False
         counts = self.ring.publisher_counts()
-        return all(counts.get(t, 0) >= n for t, n in self.synced_counts.items())
+        return all(counts.get(t, 0) >= n for t, n in self.current.synced_counts.items())
 
     def _on_released(self, status: dict[str, Any]) -> None:
         self.running_since = self._now()
@@ -839,7 +840,7 @@ class ManagedNode:
             last_checkpoint_age_s=age(self.last_checkpoint_at, now),
             standby=standby,
             checkpoint_overdue_s=self.checkpoint_overdue(now),
-            checkpoint_error=self.checkpoint_error,
+            checkpoint_error=self.current.checkpoint_error,
             fatal_reason=self.fatal_reason,
             freshness=self.last_freshness if self.cfg.method.checkpoints else None,
             gate_service=self.gate_service if self.cfg.release_gate is not None else None,
@@ -873,7 +874,7 @@ class ManagedNode:
         if (self.sm.state != NodeState.RUNNING or not self.cfg.method.checkpoints
                 or self.running_since is None):
             return None
-        interval = float((self.hello or {}).get('interval') or 2.0)
+        interval = float((self.current.hello or {}).get('interval') or 2.0)
         since = max(self.last_checkpoint_at or 0.0, self.running_since)
         late = now - since - OVERDUE_INTERVALS * interval
         return late if late > 0 else None
@@ -883,8 +884,8 @@ class ManagedNode:
         state = self.sm.state
         if state in _LIVE:
             self._check_heartbeat(now)
-        if not self.overdue_said and self.checkpoint_overdue(now) is not None:
-            self.overdue_said = True
+        if not self.current.overdue_said and self.checkpoint_overdue(now) is not None:
+            self.current.overdue_said = True
             age_s = None if self.last_checkpoint_at is None else now - self.last_checkpoint_at
             _logger.warning(
                 '%s %s: no checkpoint for %s: the interval follows the node\'s ROS time (under '
@@ -916,10 +917,10 @@ class ManagedNode:
         if state == NodeState.BACKOFF and self.restart_at is not None and now >= self.restart_at:
             self._restart()
         elif state in (NodeState.ARMING, NodeState.REPLAYING):
-            if self.synced_counts is None and now - self.sync_sent >= SYNC_PERIOD:
+            if self.current.synced_counts is None and now - self.current.sync_sent >= SYNC_PERIOD:
                 self._send_sync()
-            elif state == NodeState.ARMING and not self.release_sent and self._armed():
-                self.release_sent = True  # once; the node answers RELEASED
+            elif state == NodeState.ARMING and not self.current.release_sent and self._armed():
+                self.current.release_sent = True  # once; the node answers RELEASED
                 assert self.replay_pub is not None  # made by spawn()
                 self.replay_pub.publish(
                     protocol.pack_release(self.incarnation, self.segments.next_number(), 0)
@@ -930,46 +931,48 @@ class ManagedNode:
         child = self.child
         if child is None:
             return
-        if self.hang_kill_at is not None:
-            if now >= self.hang_kill_at:
-                self.hang_kill_at = float('inf')  # once; its exit is reaped as a crash
-                child.send_signal(signal.SIGKILL)
+        if self.current.killed:
+            return  # its exit is reaped as a crash
+        if self.current.hang_kill_at is not None:
+            if now >= self.current.hang_kill_at:
+                self._kill(child)
             return
         now_ns = self._now_ns()
         beat = self.sup.read_beat(self.slot)
-        if beat is None or beat < self.spawned_ns:
+        if beat is None or beat < self.current.spawned_ns:
             # Not beating yet: still importing, initialising, constructing the node.
-            limit, since, what = self.cfg.start_timeout, self.spawned_ns, 'start'
+            limit, since, what = self.cfg.start_timeout, self.current.spawned_ns, 'start'
         else:
             limit, since, what = self.cfg.hang_timeout, beat, 'heartbeat'
             self._watch_stall((now_ns - beat) / 1e9)
-            if self.first_beat_ns is None:
-                self.first_beat_ns = now_ns
-            if self.hello is None and now_ns - self.first_beat_ns > HELLO_TIMEOUT * 1e9:
-                self._unheard(child, (now_ns - self.first_beat_ns) / 1e9, now)
+            if self.current.first_beat_ns is None:
+                self.current.first_beat_ns = now_ns
+            beating_for = now_ns - self.current.first_beat_ns
+            if self.current.hello is None and beating_for > HELLO_TIMEOUT * 1e9:
+                self._unheard(child, beating_for / 1e9, now)
                 return
         if limit is None or now_ns - since <= limit * 1e9:
             return
-        self.hung_for = (now_ns - since) / 1e9
-        self.kill_reason = f'hung (no {what} for {self.hung_for:.1f} s)'
+        self.current.hung_for = (now_ns - since) / 1e9
+        self.current.kill_reason = f'hung (no {what} for {self.current.hung_for:.1f} s)'
         busy = self.poison.died_on(self.incarnation)
         on = f' while applying {busy.topic} {busy.ident}' if busy is not None else ''
         _logger.error(
             '%s %s: hung: no %s for %.1f s (limit %.1f s)%s; killing pid %d', LOG_PREFIX,
-            self.id, what, self.hung_for, limit, on, child.pid,
+            self.id, what, self.current.hung_for, limit, on, child.pid,
         )
         self.sup.events_log.write(
-            'hang', self.id, incarnation=self.incarnation, stalled_s=round(self.hung_for, 3),
+            'hang', self.id, incarnation=self.incarnation,
+            stalled_s=round(self.current.hung_for, 3),
             waiting_for=what, topic=busy.topic if busy else None,
             source_ns=busy.ident[0] if busy else None, seq=busy.ident[1] if busy else None,
         )
         if what == 'heartbeat':
             # faulthandler in the node prints every thread's stack: where it hung.
             child.send_signal(signal.SIGUSR1)
-            self.hang_kill_at = now + HANG_DUMP_GRACE
+            self.current.hang_kill_at = now + HANG_DUMP_GRACE
         else:
-            self.hang_kill_at = float('inf')
-            child.send_signal(signal.SIGKILL)
+            self._kill(child)
 
     def _watch_stall(self, stalled: float) -> None:
         """S2 early: while the heartbeat is late, the ring keeps every input message.
@@ -1001,7 +1004,7 @@ class ManagedNode:
 
     def _unheard(self, child: Child, beating_for: float, now: float) -> None:
         """The process runs but its HELLO never arrived: replace it (a crash, recovered)."""
-        self.kill_reason = f'unheard (no HELLO after {beating_for:.1f} s of running)'
+        self.current.kill_reason = f'unheard (no HELLO after {beating_for:.1f} s of running)'
         _logger.error(
             '%s %s: pid %d has run %.1f s without its HELLO reaching the supervisor (its '
             'status publisher was never discovered); replacing it', LOG_PREFIX, self.id,
@@ -1009,7 +1012,12 @@ class ManagedNode:
         )
         self.sup.events_log.write('unheard', self.id, incarnation=self.incarnation,
                                   beating_s=round(beating_for, 3))
-        self.hang_kill_at = float('inf')
+        self._kill(child)
+
+    def _kill(self, child: Child) -> None:
+        """SIGKILL the current process, once; its exit is then reaped as a crash."""
+        self.current.killed = True
+        self.current.hang_kill_at = None
         child.send_signal(signal.SIGKILL)
 
     def stop(self) -> None:

@@ -9,7 +9,6 @@ recovering nodes; one streamer thread per recovery feeds a shadow topic.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import queue
@@ -25,7 +24,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import Any, Literal, TextIO
+from typing import Any, Literal
 
 import rclpy
 import rclpy.utilities
@@ -47,6 +46,7 @@ from ..store import CheckpointStore
 from ..threads import name_this_thread
 from .config import NodeConfig, SupervisorConfig, check_store, store_error
 from .diagnostics import NodeHealth, Reporter, age
+from .events import EventLog, RosoutHandler
 from .lineage import InputGap
 from .output import OutputPrefixer
 from .parameters import NODE_NAME as SUPERVISOR_NODE
@@ -161,54 +161,6 @@ Event = ChildExited | StatusReceived | Released | Stop | GateCall
 
 GATE_CALL_ANSWER = 2.0
 """Seconds a release call waits for the main loop's answer (it is busy for milliseconds)."""
-
-
-class RosoutHandler(logging.Handler):
-    """Forwards RORY's log records to an rclpy logger, so they reach /rosout and ROS's log
-    files with the supervisor's node name, as every other node's log does."""
-
-    def __init__(self, ros_logger: Any) -> None:
-        super().__init__()
-        self._ros = ros_logger
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            text = record.getMessage()
-            if record.levelno >= logging.ERROR:
-                self._ros.error(text)
-            elif record.levelno >= logging.WARNING:
-                self._ros.warning(text)
-            elif record.levelno >= logging.INFO:
-                self._ros.info(text)
-            else:
-                self._ros.debug(text)
-        except Exception:  # logging must never take the supervisor down
-            self.handleError(record)
-
-
-class EventLog:
-    """Machine-readable record of what happened: ``<store>/events.jsonl``."""
-
-    def __init__(self, path: Path) -> None:
-        make_private_dir(path.parent)
-        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
-        self._file: TextIO = os.fdopen(fd, 'a', encoding='utf-8')
-        self._lock = threading.Lock()
-        self.listeners: list[Callable[[dict[str, Any]], None]] = []  # e.g. /rory/events
-
-    def write(self, kind: str, node: str, **fields: Any) -> None:
-        """Append one event."""
-        record = {'t': time.time(), 'kind': kind, 'node': node, **fields}
-        with self._lock:
-            self._file.write(json.dumps(record, sort_keys=True) + '\n')
-            self._file.flush()
-        for listener in self.listeners:
-            listener(record)
-
-    def close(self) -> None:
-        """Close the file."""
-        with self._lock:
-            self._file.close()
 
 
 @dataclass

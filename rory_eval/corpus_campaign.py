@@ -149,11 +149,11 @@ NODES: tuple[CorpusNode, ...] = (
     CorpusNode('clock_integrator.py', 'clock_integrator', clock_integrator),
     CorpusNode('timer_mapper.py', 'timer_mapper', timer_mapper),
     CorpusNode('gain_controller.py', 'gain_controller', _runs('gains', 'total'),
-               ('gain', '20=2.0', '100=3.0')),
+               ('gain', '20=2.0', 'c10=3.0')),
     CorpusNode('mode_switch.py', 'mode_switch', _runs('runs', 'total'),
-               ('fast', '20=1', '100=0')),
+               ('fast', '20=1', 'c10=0')),
     CorpusNode('lifecycle_counter.py', 'lifecycle_counter', _runs('runs', 'total'),
-               ('lifecycle', '0=configure', '30=activate', '100=deactivate', '120=activate')),
+               ('lifecycle', '0=configure', '30=activate', 'c5=deactivate', 'c15=activate')),
 )
 
 

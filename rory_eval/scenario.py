@@ -55,6 +55,13 @@ INTEGRATOR = Program(
 )
 
 
+def _numbers_applied(state: Any) -> bool:
+    """Whether a state the node published shows numbers applied: a program that reports on a
+    timer publishes its empty state (``count`` 0) before the first number, and a strike timed
+    from that would land up to a report period early."""
+    return not (isinstance(state, dict) and state.get('count') == 0)
+
+
 @dataclass(frozen=True)
 class Kill:
     """When to strike the node: exactly one of the time fields is set; ``how`` is the fault.
@@ -66,6 +73,7 @@ class Kill:
 
     after: float | None = None  # seconds after the first number was published
     after_checkpoint: int | None = None  # right after the node reports its k-th checkpoint
+    delay: float = 0.0  # with after_checkpoint: this long after that checkpoint
     during_recovery: float | None = None  # this long after the replacement starts replaying
     after_respawn: float | None = None  # this long after a replacement process was spawned
     # This long after the previous strike (the first: after the first number); a signal waits
@@ -85,6 +93,8 @@ class Kill:
             return f'{what}at {self.after:g} s'
         if self.after_previous is not None:
             return f'{what}{self.after_previous:g} s after the previous strike'
+        if self.after_checkpoint is not None and self.delay:
+            return f'{what}{self.delay:g} s after checkpoint {self.after_checkpoint}'
         if self.after_checkpoint is not None:
             return f'{what}just after checkpoint {self.after_checkpoint}'
         if self.after_respawn is not None:
@@ -402,7 +412,8 @@ def run(
                     if now > deadline:
                         raise RuntimeError(f'scenario timed out:\n{sup_log.read_text()[-4000:]}')
                     tracker.feed(events.poll())
-                    if started is None and observer.state != before:
+                    if (started is None and observer.state != before
+                            and _numbers_applied(observer.state)):
                         started = now  # the first number has been applied
                     if pending and started is not None:
                         kill = pending[0]
@@ -463,6 +474,7 @@ class EventTracker:
         self.incarnation = 0
         self.state = ''
         self.checkpoints = 0
+        self.checkpoint_at: list[float] = []  # monotonic, when each was heard
         self.replaying_since: float | None = None
         self.respawned_at: float | None = None  # the latest recovery's spawn
         self.first_respawned_at: float | None = None
@@ -482,6 +494,7 @@ class EventTracker:
                         self.first_respawned_at = self.respawned_at
             elif ev['kind'] == 'checkpoint':
                 self.checkpoints += 1
+                self.checkpoint_at.append(time.monotonic())
             elif ev['kind'] == 'state':
                 self.state = ev['new']
                 self.replaying_since = time.monotonic() if ev['new'] == 'REPLAYING' else None
@@ -497,7 +510,8 @@ class EventTracker:
         if kill.after_previous is not None:
             return now - (started if previous is None else previous) >= kill.after_previous
         if kill.after_checkpoint is not None:
-            return self.checkpoints >= kill.after_checkpoint
+            return (self.checkpoints >= kill.after_checkpoint and now
+                    - self.checkpoint_at[kill.after_checkpoint - 1] >= kill.delay)
         if kill.after_respawn is not None:
             since = self.respawned_at
             return since is not None and now - since >= kill.after_respawn

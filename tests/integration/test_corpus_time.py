@@ -8,7 +8,7 @@ node never read the same times, so each crashed run is judged as ``make faults``
 campaign judges it without a reference (rory_eval/corpus_campaign.py): every number applied
 once and in order, the state what its own readings and settings imply, no reading or tick
 taken from the replay's time instead of the recorded one (which shows as a lag or a gap of
-the time since the checkpoint, here about 1.8 s). The campaign adds the no-crash run and
+the time since the checkpoint, here about 1 s). The campaign adds the no-crash run and
 random kill times.
 """
 
@@ -24,15 +24,15 @@ from rory_eval.scenario import Kill, ScenarioResult
 pytestmark = pytest.mark.ros
 
 BY_NAME = {node.name: node for node in NODES}
-# The node checkpoints every 2 s from its start, about 1 s before the first number: killed
-# 2.8 s into the numbers, it is about 1.8 s past its second checkpoint. The operators act at
-# numbers 20-30 (before that checkpoint) and 100-120 (after it, before the kill).
-KILL_AFTER = 2.8
+# The operators act at numbers 20-30, before the node's first checkpoint (2 s after its
+# release, 1-1.7 s into the numbers), and again 5-15 numbers after it (corpus/operator.py reads
+# /rory/events); the node is killed 1 s after that checkpoint, 1 s before its second.
+KILL = Kill(after_checkpoint=1, delay=1.0)
 
 
 def _crashed(name: str, tmp_path: Path, domain: int) -> ScenarioResult:
     node = BY_NAME[name]
-    result = run_node(node, (Kill(after=KILL_AFTER),), tmp_path, domain)
+    result = run_node(node, (KILL,), tmp_path, domain)
     assert judge_run(node, None, result) == []
     assert result.recoveries[0]['replayed'] > 0
     return result

@@ -76,6 +76,7 @@ from . import (
 )
 from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
 from .event_clock import EventClock, Reading
+from .freshness import rules_from
 from .inflight import InFlightSlot, slot_path
 from .log import SegmentStore, SegmentWriter, default_typestore
 from .msgtypes import type_name_of
@@ -210,7 +211,7 @@ def checkpointed(
             return cls
         spec = CheckpointSpec(
             tuple(vars), manifest, tuple(module_vars), cls.__module__, checkpoint_interval, replay,
-            _rules(freshness),
+            rules_from(freshness),
         )
         _install(cls, spec, env)
         return cls
@@ -236,12 +237,9 @@ def checkpoint_module(
     if env is None:
         return
     spec = CheckpointSpec((), manifest, tuple(vars), module, checkpoint_interval, replay,
-                          _rules(freshness))
+                          rules_from(freshness))
     _watch_for_node(spec, env)
 
-
-def _rules(entries: tuple[tuple[str, float, str], ...]) -> tuple[freshness.Rule, ...]:
-    return freshness.rules_from(entries)
 
 
 # ---------------------------------------------------------------------------------------------

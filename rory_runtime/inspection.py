@@ -206,27 +206,31 @@ def _when(ns: int) -> str:
     return datetime.fromtimestamp(ns / 1e9).isoformat(sep=' ', timespec='milliseconds')
 
 
-def freshness_lines(ckpt: Checkpoint, now_ns: int) -> list[str]:
-    """Each variable's age and rule (freshness.py), as a recovery now would judge it on the
-    system clock; under simulation time only the node knows the clock it judges by."""
+def age_line(ckpt: Checkpoint, now_ns: int) -> str:
+    """A checkpoint's age on the system clock; under simulation time, the time it was taken
+    too (only the node knows the clock it judges freshness by)."""
+    sim = (f'; taken at {ckpt.clock_ns / 1e9:.3f} s of simulation time, the clock a node under '
+           'use_sim_time judges it by') if ckpt.sim_time else ''
+    return f'age {(now_ns - ckpt.created_ns) / 1e9:.1f} s{sim}'
+
+
+def variable_ages(ckpt: Checkpoint, now_ns: int) -> dict[str, str]:
+    """Each variable's age and rule (freshness.py), as a recovery now would judge it."""
     age_s = (now_ns - ckpt.created_ns) / 1e9
     rules = {key: (max_age, on_stale) for key, max_age, on_stale in ckpt.freshness}
     try:
         names = list(variable_kinds(ckpt.vars_blob))
     except (CodecError, ValueError):
         names = list(rules)
-    sim = (f'; taken at {ckpt.clock_ns / 1e9:.3f} s of simulation time, the clock a node under '
-           'use_sim_time judges it by') if ckpt.sim_time else ''
-    lines = [f'age {age_s:.1f} s{sim}']
+    ages = {}
     for name in names:
         if name not in rules:
-            lines.append(f'{name}: age {age_s:.1f} s, no rule (always restored)')
+            ages[name] = f'age {age_s:.1f} s, no rule (always restored)'
             continue
         max_age, on_stale = rules[name]
         verdict = ('stale' if age_s > max_age else 'fresh') if not ckpt.sim_time else 'see above'
-        lines.append(f'{name}: age {age_s:.1f} s, max_age {max_age:g} s, on_stale {on_stale}: '
-                     f'{verdict}')
-    return lines
+        ages[name] = f'age {age_s:.1f} s, max_age {max_age:g} s, on_stale {on_stale}: {verdict}'
+    return ages
 
 
 def _size(n: float) -> str:
@@ -306,7 +310,7 @@ def listing(store: Path, out: TextIO, only: str | None = None) -> None:
             except (CodecError, ValueError) as err:
                 print(f'      variables unreadable: {err}', file=out)
                 continue
-            ages = dict(line.split(': ', 1) for line in freshness_lines(ckpt, now_ns)[1:])
+            ages = variable_ages(ckpt, now_ns)
             for name, kind in kinds.items():
                 print(f'      {name}: {kind}; {ages.get(name, "")}'.rstrip('; '), file=out)
         lines = list(_segments(store, node))
@@ -344,10 +348,10 @@ def show_checkpoint(store: Path, node: str, which: str, out: TextIO) -> None:
           f'manifest {ckpt.manifest}, {_size(len(ckpt.vars_blob))} of variables', file=out)
     for topic, idents in ckpt.windows.items():
         print(f'  window {topic}: {len(idents)} message identities', file=out)
-    head, *per_variable = freshness_lines(ckpt, time.time_ns())
-    print(f'  {head}', file=out)
-    for line in per_variable:
-        print(f'    {line}', file=out)
+    now_ns = time.time_ns()
+    print(f'  {age_line(ckpt, now_ns)}', file=out)
+    for name, age in variable_ages(ckpt, now_ns).items():
+        print(f'    {name}: {age}', file=out)
     values, note = decode_for_display(ckpt.vars_blob)
     if note:
         print(f'  ({note})', file=out)

@@ -116,13 +116,8 @@ class OutputPrefixer:
         os.close(fd)
 
     def _write(self, pipe: _Pipe, lines: list[bytes]) -> None:
-        if not lines:
-            return
-        prefix = f'[{pipe.streams.label}] '.encode()
-        text = b''.join(prefix + line + b'\n' for line in lines)
-        with self._lock, contextlib.suppress(OSError, ValueError):
-            pipe.target.write(text)
-            pipe.target.flush()
+        with self._lock:
+            _emit(pipe, lines)
 
     def close(self, timeout: float = 2.0) -> None:
         """Write what is still in the pipes (up to ``timeout`` for processes to end), stop."""
@@ -139,17 +134,19 @@ class OutputPrefixer:
         self._thread.join(timeout)
         with self._lock:
             for key in list(self._selector.get_map().values()):
-                if key.data is not None:
-                    self._flush_pending(key.data)
+                if key.data is not None and key.data.pending:
+                    _emit(key.data, [key.data.pending])
                 with contextlib.suppress(OSError):
                     os.close(key.fd)
             self._selector.close()
         os.close(self._wake_w)
 
-    def _flush_pending(self, pipe: _Pipe) -> None:
-        if pipe.pending:
-            prefix = f'[{pipe.streams.label}] '.encode()
-            with contextlib.suppress(OSError, ValueError):
-                pipe.target.write(prefix + pipe.pending + b'\n')
-                pipe.target.flush()
-            pipe.pending = b''
+
+def _emit(pipe: _Pipe, lines: list[bytes]) -> None:
+    """Write whole lines with the pipe's label in front (the caller holds the lock)."""
+    if not lines:
+        return
+    prefix = f'[{pipe.streams.label}] '.encode()
+    with contextlib.suppress(OSError, ValueError):
+        pipe.target.write(b''.join(prefix + line + b'\n' for line in lines))
+        pipe.target.flush()

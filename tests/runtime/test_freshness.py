@@ -8,7 +8,7 @@ import pytest
 
 from rory_runtime import codec
 from rory_runtime.freshness import ClockReading, Rule, checkpoint_age, describe, judge
-from rory_runtime.inspection import freshness_lines
+from rory_runtime.inspection import age_line, variable_ages
 from rory_runtime.store import Checkpoint
 
 S = 1_000_000_000
@@ -58,6 +58,7 @@ def test_inspect_shows_each_variables_age_and_rule() -> None:
                       method='rory', cut=None, windows={},
                       vars_blob=codec.encode_vars({'pose': 1.0, 'count': 3}),
                       clock_ns=now - 12 * S, freshness=(('pose', 5.0, 'reset'),))
-    lines = freshness_lines(ckpt, now)
-    assert lines == ['age 12.0 s', 'pose: age 12.0 s, max_age 5 s, on_stale reset: stale',
-                     'count: age 12.0 s, no rule (always restored)']
+    assert age_line(ckpt, now) == 'age 12.0 s'
+    assert variable_ages(ckpt, now) == {
+        'pose': 'age 12.0 s, max_age 5 s, on_stale reset: stale',
+        'count': 'age 12.0 s, no rule (always restored)'}

@@ -32,11 +32,13 @@ from typing import Any
 from rory_eval.process_usage import TreeSampler
 from rory_eval.scenario import EXAMPLE, prepare, stop_process
 from rory_eval.simrun import exit_on_sigterm
+from rory_runtime.dds import fast_rediscovery_env
 
-CONFIGS = ('bare', 'restart', 'checkpoint', 'replay', 'rory')
-"""In the order they add mechanisms: ``restart`` is the node under the supervisor with nothing
-kept (the runtime's fixed cost); ``checkpoint`` adds checkpoints; ``replay`` logging and the
-ring, no checkpoints; ``rory`` all of it and the warm standby."""
+CONFIGS = ('bare', 'bare_udp', 'restart', 'checkpoint', 'replay', 'rory')
+"""In the order they add mechanisms: ``bare_udp`` is the bare node under RORY's DDS profile
+(UDPv4 on 127.0.0.1, no shared memory; rory_runtime/dds); ``restart`` the node under the
+supervisor with nothing kept (the runtime's fixed cost); ``checkpoint`` adds checkpoints;
+``replay`` logging and the ring, no checkpoints; ``rory`` all of it and the warm standby."""
 WARM_UP = 10.0  # s: the node up, its first checkpoints, the standby forked and ready
 
 
@@ -54,9 +56,11 @@ def run_once(config: str, workdir: Path, domain: int, seconds: float,
     """One configuration once; its tree's usage per role."""
     workdir.mkdir(parents=True, exist_ok=True)
     env = plain_env(domain)
-    if config == 'bare':
+    if config in ('bare', 'bare_udp'):
         command = [sys.executable, str(EXAMPLE / 'integrator.py')]
         readers = '1'
+        if config == 'bare_udp':
+            env.update(fast_rediscovery_env(env))
     else:
         supervise = prepare(workdir, config, interval=None, pace=None)
         command = [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(supervise)]

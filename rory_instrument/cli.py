@@ -7,6 +7,7 @@ directory next to it and renamed into place, so an error never leaves a partial 
 from __future__ import annotations
 
 import argparse
+import os
 import posixpath
 import shutil
 import stat
@@ -167,6 +168,27 @@ def _ignore_manifest(src: Path) -> Callable[[str, list[str]], list[str]]:
     return ignore
 
 
+def _copy_tree(src: Path, tree: Path) -> None:
+    """Copies SRC to ``tree``, symlinks as symlinks, except relative links to files outside SRC.
+
+    A copied link keeps its text, so a relative one that leads out of SRC (``../shared/x.py``,
+    a module several programs link in) would point at nothing in OUT, or at something else: it
+    is copied as the file it points to. Links inside SRC, absolute links, links to directories
+    and dangling links stay links.
+    """
+    shutil.copytree(src, tree, symlinks=True, ignore=_ignore_manifest(src))
+    for directory, _subdirs, names in os.walk(tree):
+        for name in names:
+            copied = Path(directory) / name
+            if not copied.is_symlink() or Path(os.readlink(copied)).is_absolute():
+                continue
+            pointed = (src / copied.relative_to(tree)).resolve()
+            if pointed.is_relative_to(src) or not pointed.is_file():
+                continue
+            copied.unlink()
+            shutil.copy2(pointed, copied)
+
+
 def _write_file(path: Path, data: bytes) -> None:
     """Overwrites a copied file, keeping its mode even if that mode is read-only."""
     mode = stat.S_IMODE(path.stat().st_mode)
@@ -188,7 +210,7 @@ def _write_tree(src: Path, out: Path, files: dict[str, bytes],
     staging = Path(tempfile.mkdtemp(prefix=f'.{out.name}.rory-', dir=out.parent))
     try:
         tree = staging / 'tree'
-        shutil.copytree(src, tree, symlinks=True, ignore=_ignore_manifest(src))
+        _copy_tree(src, tree)
         for rel, code in files.items():
             _write_file(tree / rel, code)
         declared = declare_runtime(tree)

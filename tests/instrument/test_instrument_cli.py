@@ -96,6 +96,32 @@ def test_copies_everything_else_byte_for_byte(src: Path) -> None:
     assert text.endswith('")\n' + INTEGRATOR_SOURCE[INTEGRATOR_SOURCE.index('class '):])
 
 
+def test_a_relative_link_to_a_file_outside_src_is_copied_as_that_file(src: Path) -> None:
+    # Copied as a link, ../shared/geometry.py would point at nothing next to OUT.
+    work = src.parent
+    (work / 'shared').mkdir()
+    (work / 'shared' / 'geometry.py').write_text('def wrap(a: float) -> float:\n    return a\n')
+    (work / 'shared' / 'data').mkdir()
+    (src / 'geometry.py').symlink_to('../shared/geometry.py')
+    (src / 'data_dir').symlink_to('../shared/data', target_is_directory=True)
+    (src / 'absolute.py').symlink_to(work / 'shared' / 'geometry.py')
+    (src / 'dangling.py').symlink_to('../shared/missing.py')
+    done = run('src', '--vars', 'keyvars.yaml', '-o', 'out', cwd=work)
+    assert (done.returncode, done.stderr) == (0, '')
+    before, after = tree(src), tree(work / 'out')
+    shared = work / 'shared' / 'geometry.py'
+    mode = oct(stat.S_IMODE(shared.stat().st_mode))
+    assert after['geometry.py'] == (f'file {mode}', shared.read_bytes())
+    # Links inside SRC, absolute links, links to directories and dangling links stay links.
+    for rel in ('link.py', 'data_dir', 'absolute.py', 'dangling.py'):
+        assert after[rel] == before[rel]
+        assert after[rel][0].startswith('link ')
+    assert set(after) == set(before) | {'rory_manifest.json'}
+    again = run('out', '--vars', 'keyvars.yaml', '-o', 'out2', cwd=work)
+    assert (again.returncode, again.stderr) == (0, '')
+    assert tree(work / 'out2') == tree(work / 'out')
+
+
 def test_rerun_on_output_gives_identical_tree(src: Path) -> None:
     work = src.parent
     assert run('src', '--vars', 'keyvars.yaml', '-o', 'out', cwd=work).returncode == 0

@@ -24,8 +24,8 @@ from statistics import NormalDist
 import numpy as np
 import numpy.typing as npt
 
-from amcl_geometry import Pose
 from amcl_motion_model import MotionNoise, sample_motion_model_odometry
+from planar_geometry import Pose
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

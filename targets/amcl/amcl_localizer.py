@@ -18,10 +18,10 @@ import numpy as np
 import numpy.typing as npt
 
 from amcl_filter import FilterConfig, ParticleFilter
-from amcl_geometry import OdometrySample, Pose, compose, odometry_at, relative
-from amcl_map import GridMap
 from amcl_motion_model import MotionNoise
 from amcl_sensor_model import LikelihoodField, SensorModelConfig, select_beams
+from planar_geometry import OdometrySample, Pose, compose, odometry_at, relative
+from planar_map import GridMap
 
 FloatArray = npt.NDArray[np.float64]
 

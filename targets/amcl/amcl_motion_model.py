@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from amcl_geometry import Pose, wrap_angle
+from planar_geometry import Pose, wrap_angle
 
 FloatArray = npt.NDArray[np.float64]
 

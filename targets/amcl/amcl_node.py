@@ -27,11 +27,11 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 
 from amcl_filter import FilterConfig
-from amcl_geometry import Pose, quaternion_from_yaw, yaw_from_quaternion
 from amcl_localizer import AmclConfig, AmclLocalizer, PoseEstimate, ScanSkipped
-from amcl_map import grid_from_values
 from amcl_motion_model import MotionNoise
 from amcl_sensor_model import SensorModelConfig
+from planar_geometry import Pose, quaternion_from_yaw, yaw_from_quaternion
+from planar_map import grid_from_values
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                      reliability=ReliabilityPolicy.RELIABLE)

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from amcl_map import GridMap, distance_field
+from planar_map import GridMap, distance_field
 
 FloatArray = npt.NDArray[np.float64]
 

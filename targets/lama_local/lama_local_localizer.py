@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from lama_local_geometry import OdometrySample, Pose, compose, odometry_at, relative
-from lama_local_map import GridMap
 from lama_local_matcher import DistanceMap, MatcherConfig, match
 from lama_local_scan import scan_points
+from planar_geometry import OdometrySample, Pose, compose, odometry_at, relative
+from planar_map import GridMap
 
 FloatArray = npt.NDArray[np.float64]
 

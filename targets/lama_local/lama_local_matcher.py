@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from lama_local_geometry import Pose, wrap_angle
-from lama_local_map import GridMap, distance_field
+from planar_geometry import Pose, wrap_angle
+from planar_map import GridMap, distance_field
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -25,10 +25,10 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 
-from lama_local_geometry import Pose, quaternion_from_yaw, yaw_from_quaternion
 from lama_local_localizer import LamaConfig, LamaLocalizer, PoseEstimate, ScanSkipped
-from lama_local_map import grid_from_values
 from lama_local_matcher import MatcherConfig
+from planar_geometry import Pose, quaternion_from_yaw, yaw_from_quaternion
+from planar_map import grid_from_values
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                      reliability=ReliabilityPolicy.RELIABLE)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from lama_local_geometry import Pose
+from planar_geometry import Pose
 
 FloatArray = npt.NDArray[np.float64]
 

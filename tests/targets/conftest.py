@@ -1,6 +1,7 @@
 """Target programs are plain script folders (``python targets/amcl/amcl_node.py``), not
 packages: their tests import a target's modules with its folder on sys.path, as the program
-itself does. Module names start with the target's name, so folders never clash."""
+itself does. Module names start with their folder's name, so folders never clash; the modules
+of targets/planar, linked into amcl and lama_local, are one file whichever folder finds them."""
 
 from __future__ import annotations
 

@@ -20,11 +20,11 @@ import pytest
 import yaml
 
 from amcl_filter import FilterConfig, ParticleFilter, kld_sample_count
-from amcl_geometry import compose, odometry_at, relative, wrap_angle
 from amcl_localizer import AmclConfig, AmclLocalizer, ScanSkipped
-from amcl_map import GridMap, distance_field, grid_from_values
 from amcl_motion_model import MotionNoise, sample_motion_model_odometry
 from amcl_sensor_model import LikelihoodField, SensorModelConfig, select_beams
+from planar_geometry import compose, relative, wrap_angle
+from planar_map import GridMap
 from rory_eval.metrics import position_errors
 from rory_runtime import codec
 from sim.driver import CONTROL_RATE, RouteFollower
@@ -105,39 +105,6 @@ def yaw_errors(estimates: list[tuple[float, ...]],
 
 
 # -- parts -----------------------------------------------------------------------------------
-
-def test_distance_field_is_exact_within_its_reach() -> None:
-    rng = np.random.default_rng(3)
-    occupied = rng.random((40, 55)) < 0.02
-    field = distance_field(occupied, 0.05, 0.6)
-    rows, cols = np.nonzero(occupied)
-    for r in range(40):
-        for c in range(55):
-            true = math.sqrt(float(((rows - r) ** 2 + (cols - c) ** 2).min())) * 0.05
-            assert field[r, c] == pytest.approx(min(true, 0.6), abs=1e-6)
-    assert distance_field(np.zeros((4, 4), bool), 0.05, 1.0).max() == pytest.approx(1.0)
-
-
-def test_grid_from_values_refuses_malformed_maps() -> None:
-    grid = grid_from_values([0] * 12, 4, 3, 0.05, -1.0, 2.0)
-    assert grid.data.shape == (3, 4) and grid.origin_y == 2.0
-    for args in (([0] * 11, 4, 3, 0.05), ([0] * 12, 4, 3, 0.0), ([], 0, 0, 0.05),
-                 ([0] * 12, 4, 3, math.nan)):
-        with pytest.raises(ValueError):
-            grid_from_values(*args, 0.0, 0.0)
-
-
-def test_odometry_lookup_interpolates_between_samples() -> None:
-    history = [(0, 0.0, 0.0, 3.1), (20, 1.0, 2.0, -3.1)]
-    x, y, yaw = odometry_at(history, 10)  # type: ignore[misc]
-    assert (x, y) == pytest.approx((0.5, 1.0))
-    assert abs(wrap_angle(yaw - math.pi)) < 1e-9  # through +-pi, not through 0
-    assert odometry_at(history, -5) == (0.0, 0.0, 3.1)
-    assert odometry_at(history, 99) == (1.0, 2.0, -3.1)
-    assert odometry_at([], 0) is None
-    a, b = (1.0, 2.0, 0.5), (1.5, 1.0, -2.0)
-    assert compose(a, relative(a, b)) == pytest.approx(b)
-
 
 def test_motion_model_without_noise_moves_every_particle_by_the_odometry() -> None:
     particles = np.array([[0.0, 0.0, 0.0], [2.0, 1.0, math.pi / 2]])
@@ -347,13 +314,3 @@ def test_same_seed_same_run() -> None:
     a = list(feed(make_localizer('real_room', seed=3), stream.events))
     b = list(feed(make_localizer('real_room', seed=3), stream.events))
     assert a == b
-
-
-def test_odometry_at_a_sample_stamp_does_not_depend_on_later_odometry() -> None:
-    # A scan is used with the odometry at its stamp, whether that sample was the newest when the
-    # scan arrived or later ones had come too (delivery order varies). wrap_angle changes the
-    # last bits of most angles, so the sample must come back as it is, not interpolated at 0.
-    history = [(k * 20, 0.1 * k + 0.013, 0.2 * k, 1.29 + 0.0137 * k) for k in range(8)]
-    for k in range(7):
-        assert odometry_at(history, k * 20) == odometry_at(history[:k + 1], k * 20)
-        assert odometry_at(history, k * 20) == history[k][1:]

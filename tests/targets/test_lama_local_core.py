@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 import yaml
 
-from lama_local_geometry import wrap_angle
 from lama_local_localizer import LamaConfig, LamaLocalizer, PoseEstimate, ScanSkipped
-from lama_local_map import GridMap
 from lama_local_matcher import DistanceMap, MatcherConfig, match
 from lama_local_scan import scan_points
+from planar_geometry import wrap_angle
+from planar_map import GridMap
 from rory_eval.metrics import position_errors
 from rory_runtime import codec
 from sim.driver import CONTROL_RATE, RouteFollower
@@ -261,14 +261,3 @@ def test_keyvars_restore_the_localizer_exactly() -> None:
     fresh = LamaLocalizer(LamaConfig(), (3.0, 2.0, 1.0), START_COV)
     fresh.set_map(world_grid('real_room'))
     assert [e.pose for e in feed(fresh, stream.events[cut:])] != after_original
-
-
-def test_odometry_at_a_sample_stamp_does_not_depend_on_later_odometry() -> None:
-    from lama_local_geometry import odometry_at
-
-    # Same pose whether the sample was the newest when the scan came or later ones had come
-    # too: wrap_angle would change the last bits of an interpolated (f = 0) yaw.
-    history = [(k * 20, 0.1 * k + 0.013, 0.2 * k, 1.29 + 0.0137 * k) for k in range(8)]
-    for k in range(7):
-        assert odometry_at(history, k * 20) == odometry_at(history[:k + 1], k * 20)
-        assert odometry_at(history, k * 20) == history[k][1:]

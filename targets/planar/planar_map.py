@@ -1,13 +1,16 @@
-"""The occupancy grid the filter localizes on, and its distance field.
+"""The occupancy grid a localizer localizes on, and its distance field.
 
 ``GridMap`` holds what ``/map`` said (nav_msgs/OccupancyGrid conventions: row 0 at the origin,
-100 occupied, 0 free, -1 unknown). ``distance_field`` is the classic likelihood-field
-precomputation (amcl's ``map_update_cspace``): for every cell, the distance to the nearest
-occupied cell, truncated at a maximum. It is exact (a two-pass separable Euclidean distance
-transform, Felzenszwalb & Huttenlocher 2012, restricted to the truncation radius) and costs tens
-of milliseconds for a 400 x 300 grid, once per map.
-"""
+100 occupied, 0 free, -1 unknown). ``distance_field`` gives, for every cell, the distance to the
+nearest occupied cell, truncated at a maximum: amcl's likelihood field (the classic
+``map_update_cspace`` precomputation) and lama_local's cost surface (LaMa's distance map, static
+here since the map is). It is exact (a two-pass separable Euclidean distance transform,
+Felzenszwalb & Huttenlocher 2012, restricted to the truncation radius) and runs once per map,
+not per scan.
 
+Shared by targets/amcl and targets/lama_local, each of which links it into its folder
+(targets/planar/README.md).
+"""
 from __future__ import annotations
 
 import math

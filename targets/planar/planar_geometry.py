@@ -2,6 +2,9 @@
 
 Poses are ``(x, y, yaw)`` tuples in metres and radians. No ROS here: the node converts
 messages, the algorithm modules work on numbers.
+
+Shared by targets/amcl and targets/lama_local, each of which links it into its folder
+(targets/planar/README.md).
 """
 
 from __future__ import annotations

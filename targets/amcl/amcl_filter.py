@@ -215,7 +215,7 @@ class ParticleFilter:
     # -- estimate ---------------------------------------------------------------------------------
 
     def _bins(self, particles: FloatArray) -> IntArray:
-        b = np.floor(particles / self._bin).astype(np.int64)
+        b: IntArray = np.floor(particles / self._bin).astype(np.int64)
         b[:, 2] = np.floor((particles[:, 2] + np.pi) / self.config.bin_yaw).astype(np.int64)
         b[:, 2] %= self._yaw_bins
         return b

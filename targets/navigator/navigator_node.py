@@ -30,8 +30,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 from std_msgs.msg import String
 
-from navigator_controller import ControllerParams
-from navigator_core import Command, NavigatorCore, NavigatorParams
+from navigator_controller import Command, ControllerParams
+from navigator_core import NavigatorCore, NavigatorParams
 from navigator_costmap import GridMap, InflationParams
 from navigator_geometry import Pose2D, quaternion_from_yaw, yaw_from_quaternion
 

@@ -177,13 +177,14 @@ def _copy_tree(src: Path, tree: Path) -> None:
     and dangling links stay links.
     """
     shutil.copytree(src, tree, symlinks=True, ignore=_ignore_manifest(src))
+    root = src.resolve()  # SRC may be given relative, or through a link
     for directory, _subdirs, names in os.walk(tree):
         for name in names:
             copied = Path(directory) / name
             if not copied.is_symlink() or Path(os.readlink(copied)).is_absolute():
                 continue
-            pointed = (src / copied.relative_to(tree)).resolve()
-            if pointed.is_relative_to(src) or not pointed.is_file():
+            pointed = (root / copied.relative_to(tree)).resolve()
+            if pointed.is_relative_to(root) or not pointed.is_file():
                 continue
             copied.unlink()
             shutil.copy2(pointed, copied)

@@ -17,6 +17,14 @@
   receives until the node reports, topic by topic, that its live subscription carries the same
   messages (the handover, see ``attach.py``).
 
+:class:`Recovery` runs these steps for the supervisor's ``ManagedNode``, which decides when (a
+crash, a HELLO, a SYNCED, a RELEASED) and never takes a step itself: S1 and S2 start in
+:meth:`Recovery.begin`, S2 again in :meth:`Recovery.again` (a crash before the release) and
+:meth:`Recovery.join_ring` (the ring exists once the node has named its inputs); the safe state
+is left in one place, :meth:`Recovery._leave_safe_state`, once per recovery: at S4, or at
+:meth:`Recovery.finish` when the node ended on its own before S4. A recovery that ends without
+its node back (:meth:`Recovery.give_up`, :meth:`Recovery.stop`) keeps the safe state held.
+
 The invariant behind "no message lost, none applied twice": the node's log segments, then R,
 hold every message of the node's inputs exactly once, in receive order; a checkpoint's cut
 says which prefix of that sequence it absorbed; the node skips any identity it has already
@@ -362,31 +370,44 @@ class Recovery:
     """The recovery of one crash of one node (it may take several processes to finish)."""
 
     node_id: str
-    crashed: float  # monotonic
+    crashed: float  # the clock's seconds at the crash
     crashed_ns: int  # time.time_ns() at the crash, the clock of message receive times
     safety: SafetyPort
     ring: Ring | None
     segments: SegmentStore
     checkpoints: CheckpointStore
+    clock: Callable[[], float] = time.monotonic  # the supervisor's (ports.py)
     timings: Timings = field(init=False)
     rlog: RecoveryLog | None = None
     streamer: ReplayStreamer | None = None
     crashes: int = 1
+    safe_state_held: bool = field(default=False, init=False)  # from S1 until it is left
 
     def __post_init__(self) -> None:
         self.timings = Timings(crashed=self.crashed)
 
-    def s1_safe_state(self) -> None:
-        """S1: hold the safe state until S4."""
-        self.safety.hold(self.node_id)
-        self.timings.s1_done = time.monotonic()
-
-    def s2_isolate(self, early: list[LogEntry] | None = None) -> None:
-        """S2: the ring takes over the node's inputs; their messages go to R, not to the node.
+    def begin(self, early: list[LogEntry] | None = None) -> None:
+        """The crash is judged: S1, then S2.
 
         Args:
             early: What the ring took since the node's heartbeat went late, if it did
                 (``ManagedNode._watch_stall``): R starts from it.
+        """
+        self.s1_safe_state()
+        self.s2_isolate(early)
+
+    def s1_safe_state(self) -> None:
+        """S1: hold the safe state until S4."""
+        self.safety.hold(self.node_id)
+        self.safe_state_held = True
+        self.timings.s1_done = self.clock()
+
+    def s2_isolate(self, early: list[LogEntry] | None = None) -> None:
+        """S2: the ring takes over the node's inputs; their messages go to R, not to the node.
+
+        Without a ring yet (the node had not named its inputs, or a supervisor resumes from
+        its store) only the time is taken: the ring joins later (:meth:`join_ring`). With an
+        R that is still open nothing changes: it keeps recording.
         """
         if self.ring is not None and (self.rlog is None or self.rlog.sealed):
             self.rlog = RecoveryLog(
@@ -395,25 +416,36 @@ class Recovery:
             )
             self.ring.activate(self.rlog, early)
         if self.timings.s2_done is None:  # a later crash of the same recovery is not S2 time
-            self.timings.s2_done = time.monotonic()
+            self.timings.s2_done = self.clock()
+
+    def join_ring(self, ring: Ring) -> None:
+        """The ring exists now (the node named its inputs in its HELLO): S2 with it."""
+        self.ring = ring
+        self.s2_isolate()
 
     def again(self, crashed: float) -> None:
-        """The replacement died before release: same recovery, next process."""
+        """The replacement died before release: same recovery, next process.
+
+        R keeps recording and the safe state stays held. If R was already sealed, what came
+        after the seal went to the relay, and the dead process may have taken some of it: a
+        new R takes over from the ring's backlog, minus what the closed R and the logs hold.
+        """
         self.crashes += 1
         if self.streamer is not None:
             self.streamer.stop()
             self.streamer = None
         self.timings.spawned = self.timings.hello = self.timings.synced = None
         self.timings.release_sent = None
+        self.s2_isolate()
 
     def s3_restart(self, spawn: Callable[[], None]) -> None:
         """S3: start the replacement process (its runtime restores before any callback)."""
         spawn()
-        self.timings.spawned = time.monotonic()
+        self.timings.spawned = self.clock()
 
     def on_hello(self, restore_ms: float) -> None:
         """The replacement is up and has restored."""
-        self.timings.hello = time.monotonic()
+        self.timings.hello = self.clock()
         self.timings.restore_ms = restore_ms
 
     def s3_replay(
@@ -426,12 +458,12 @@ class Recovery:
     ) -> None:
         """S3: stream the log after ``cut`` and then R on the shadow topic."""
         assert self.rlog is not None
-        self.timings.synced = time.monotonic()
+        self.timings.synced = self.clock()
         # Everything logged after the cut, up to R (which the streamer reads from memory).
         backlog = self.segments.read_after(cut, before=self.rlog.number)
 
         def released(sent: int) -> None:
-            self.timings.release_sent = time.monotonic()
+            self.timings.release_sent = self.clock()
             on_released(sent)
 
         self.streamer = ReplayStreamer(
@@ -441,9 +473,15 @@ class Recovery:
 
     def s4_release(self) -> dict[str, float]:
         """S4: the node is released; leave the safe state. Returns the timing breakdown."""
-        self.safety.release(self.node_id)
-        self.timings.s4_done = time.monotonic()
+        self._leave_safe_state()
+        self.timings.s4_done = self.clock()
         return self.timings.breakdown()
+
+    def _leave_safe_state(self) -> None:
+        """The one place a recovery releases the safe state it held at S1 (once)."""
+        if self.safe_state_held:
+            self.safe_state_held = False
+            self.safety.release(self.node_id)
 
     def input_gaps(self, trustworthy: Callable[[InputGap], bool]) -> list[InputGap]:
         """Gaps in the inputs' sequence numbers seen by this recovery so far.
@@ -474,7 +512,21 @@ class Recovery:
         return self.ring is None or not self.ring.active_topics
 
     def finish(self) -> None:
-        """Handover complete (or the supervisor stops): stop the relay, seal R."""
+        """The recovery is over: the handover is complete, or the node ended on its own (exit
+        status 0) before it. Stop the relay, seal R, and leave the safe state if S4 has not."""
+        self.stop()
+        self._leave_safe_state()
+
+    def give_up(self) -> None:
+        """The node will not be started again: stop recording (R stays on disk) and make the
+        ring passive. The safe state stays held: nothing will drive the robot out of it."""
+        self.stop()
+        if self.ring is not None:
+            self.ring.deactivate()
+
+    def stop(self) -> None:
+        """Stop the relay and seal R; the safe state stays as it is (held until S4). For the
+        supervisor stopping, and for a crash after S4 that starts a recovery of its own."""
         if self.streamer is not None:
             self.streamer.stop()
             self.streamer = None

@@ -369,12 +369,11 @@ class ManagedNode:
         self.sm.change_state(NodeState.RESTORING, 'resume from the store')
         rec = Recovery(
             node_id=self.id, crashed=now, crashed_ns=time.time_ns(), safety=self.sup.safety,
-            ring=None, segments=self.segments, checkpoints=self.checkpoints,
+            ring=None, segments=self.segments, checkpoints=self.checkpoints, clock=self._now,
         )
         self.recovery = rec
         self.resumed = True
-        rec.s1_safe_state()
-        rec.s2_isolate()  # the ring joins at HELLO, once the node has named its inputs
+        rec.begin()  # S2 without a ring: it joins at HELLO, once the node has named its inputs
         rec.s3_restart(lambda: self.spawn(Mode.RECOVER))
 
     def on_exit(self, ev: ChildExited) -> None:
@@ -424,10 +423,7 @@ class ManagedNode:
         self._drop_standby()
         self.gated_stats = None
         if self.recovery is not None:
-            # Stop recording for a node that will not come back (R stays on disk).
-            self.recovery.finish()
-            if self.ring is not None:
-                self.ring.deactivate()
+            self.recovery.give_up()
 
     def _judge_crash(self, ev: ChildExited) -> None:
         """Did it die applying a message - the same one as last time (poison)?"""
@@ -449,25 +445,22 @@ class ManagedNode:
     def _crashed(self, ev: ChildExited, was_recovering: bool) -> None:
         rec = self.recovery
         if rec is not None and was_recovering:
-            # Died before its release: the same recovery goes on (R keeps recording), and its
-            # time still counts from the first crash.
+            # Died before its release: the same recovery goes on (R keeps recording, the safe
+            # state stays held), and its time still counts from the first crash.
             rec.again(ev.at)
-            # If R was already sealed, what came after the seal went to the relay, and the dead
-            # process may have taken some of it: a new R takes over from the ring's backlog,
-            # minus what the closed R and the logs hold.
-            rec.s2_isolate()
             return
         if rec is not None:
-            rec.finish()  # crashed during the handover of an earlier recovery
+            # Crashed during the handover of an earlier recovery, whose S4 released the safe
+            # state: that one ends here, and this crash is a recovery of its own.
+            rec.stop()
         ring = self.ring if self.cfg.method.logs else None
         rec = Recovery(
             node_id=self.id, crashed=ev.at, crashed_ns=ev.at_ns, safety=self.sup.safety,
-            ring=ring, segments=self.segments, checkpoints=self.checkpoints,
+            ring=ring, segments=self.segments, checkpoints=self.checkpoints, clock=self._now,
         )
         self.recovery = rec
-        rec.s1_safe_state()
         early, self.early_capture = self.early_capture, None
-        rec.s2_isolate(early)
+        rec.begin(early)
 
     def _restart(self) -> None:
         self.restart_at = None
@@ -545,8 +538,7 @@ class ManagedNode:
                         '%s %s: crashed before RORY knew its inputs; messages published until '
                         'now are not recorded', LOG_PREFIX, self.id,
                     )
-                self.recovery.ring = self.ring
-                self.recovery.s2_isolate()
+                self.recovery.join_ring(self.ring)
         freshness = (status.get('restored') or {}).get('freshness')
         if isinstance(freshness, dict):
             self.last_freshness = freshness
@@ -769,8 +761,8 @@ class ManagedNode:
             return
         if self.recovery is not None:
             self._report_input_gaps(self.recovery)
+            # Leaves the safe state if S4 has not: the node exited (status 0) while recovering.
             self.recovery.finish()
-            self.sup.safety.release(self.id)
             self.recovery = None
         self._retire_shadow_topics()
 
@@ -979,8 +971,9 @@ class ManagedNode:
         self.sm.change_state(NodeState.STOPPING, 'supervisor stopping')
         self._drop_standby()
         if self.recovery is not None:
+            # The safe state stays as it is: held if the node had not been released.
             self._report_input_gaps(self.recovery)
-            self.recovery.finish()
+            self.recovery.stop()
         child = self.child
         if child is not None:
             for sig, grace in zip(

@@ -2,12 +2,14 @@
 
 The supervisor's per-node decisions (crash, hang, backoff, give-up, recovery steps, the release
 gate) run in ``ManagedNode``, driven by three entry points on the main thread: ``on_exit``,
-``on_status`` and ``tick``. Everything they reach outside themselves goes through this
-protocol: the clock, the launcher, the event log, the safe state, the ring, and the few rclpy
-calls that make the node's status reader, shadow-topic writer and release service. The real
-:class:`~.supervisor.Supervisor` provides them; tests/supervisor/fake_supervisor.py provides
-fakes, so those decisions are unit-tested without a ROS process (tests/supervisor/
-test_managed_node.py), as supervisord tests its process logic.
+``on_status`` and ``tick``; the heartbeat's in ``watchdog.Watchdog`` and the recovery steps in
+``recovery.Recovery``, which it drives. Everything they reach outside themselves goes through
+this protocol: the clock, the heartbeat reader, the launcher, the event log, the safe state,
+the ring, and the few rclpy calls that make the node's status reader, shadow-topic writer and
+release service. The real :class:`~.supervisor.Supervisor` provides them;
+tests/supervisor/fake_supervisor.py provides fakes, so those decisions are unit-tested without
+a ROS process (tests/supervisor/test_managed_node.py, tests/supervisor/test_watchdog.py), as
+supervisord tests its process logic.
 """
 
 from __future__ import annotations

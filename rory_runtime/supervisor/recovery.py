@@ -391,7 +391,7 @@ class Recovery:
 
         Args:
             early: What the ring took since the node's heartbeat went late, if it did
-                (``ManagedNode._watch_stall``): R starts from it.
+                (``ManagedNode._keep_inputs_while_late``): R starts from it.
         """
         self.s1_safe_state()
         self.s2_isolate(early)

@@ -60,6 +60,7 @@ from .run_marker import PreviousRun, RunMarker, make_room_for_previous
 from .safety import SafeState
 from .standby import ForkLauncher
 from .states import LOG_PREFIX, NodeState, NodeStateMachine, StateEvent
+from .watchdog import Beat, Hung, Unheard, Watchdog
 from .zygote import Zygote, forkable
 
 _logger = logging.getLogger('rory.supervisor')
@@ -72,11 +73,6 @@ SYNC_PERIOD = 0.05
 
 STOP_GRACE = (3.0, 2.0)
 """Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
-
-HELLO_TIMEOUT = 10.0
-"""Seconds a new process may beat without its HELLO reaching the supervisor. Its runtime sends
-HELLO right after its first callback, so a beating node whose HELLO never arrives is one whose
-status writer the supervisor never discovered: only a new process (a new participant) helps."""
 
 FAST_TICK = 0.02
 """Seconds between ticks while a node starts, arms or recovers (SYNC resends, arming)."""
@@ -96,21 +92,8 @@ STANDBY_DELAY = 1.0
 """Seconds a node runs after its (re)start before its next standby is started: the standby's
 imports must not compete with the node's own start or recovery for the CPU."""
 
-OVERDUE_INTERVALS = 3
-"""Checkpoint intervals a running node may go without a checkpoint before it is overdue
-(WARN on /diagnostics and in the log): one late checkpoint is I/O, three are a cause."""
-
 # The node's ERROR statuses that say a checkpoint was not taken (attach.py's _checkpoint_tick).
 CHECKPOINT_FAILURE_RE = re.compile(r'checkpoint (skipped|\d+ not written)')
-
-HANG_DUMP_GRACE = 0.3
-"""Seconds between SIGUSR1 (a hung node prints its threads' stacks) and SIGKILL."""
-
-STALL_SUSPECT = 0.6
-"""A heartbeat this late (3 beats; at most half of hang_timeout) may be a hang: the ring starts
-taking the node's inputs (S2 early). A hang lasts hang_timeout before the kill, longer than
-the ring's history covers on a busy topic (node depth + 16 messages: 2.3 s of 50 Hz odometry
-for a depth of 100); from here on nothing is dropped however long the hang."""
 
 _LIVE = frozenset({
     NodeState.STARTING, NodeState.ARMING, NodeState.RUNNING, NodeState.RESTORING,
@@ -165,24 +148,16 @@ GATE_CALL_ANSWER = 2.0
 
 @dataclass
 class Incarnation:
-    """What the supervisor knows of one process of a node; a new one at each spawn."""
+    """What the supervisor knows of one process of a node; a new one at each spawn (its
+    heartbeat and kill: ``Watchdog``)."""
 
     number: int
-    spawned_ns: int  # the clock's ns when it was started
     sync_nonce: int  # a SYNCED answering any SYNC with it proves the shadow path
     hello: dict[str, Any] | None = None
-    first_beat_ns: int | None = None
-    hang_kill_at: float | None = None  # SIGKILL due (SIGUSR1 sent: a stack dump)
-    killed: bool = False  # SIGKILLed by the supervisor (hung, unheard, given up)
-    hung_for: float | None = None  # how long it had not beaten, once judged hung
-    kill_reason: str | None = None  # why the supervisor killed it
     sync_sent: float = 0.0
     synced_counts: dict[str, int] | None = None  # its live publishers per input, from SYNCED
     release_sent: bool = False
-    # Its last checkpoint failure, until one succeeds; whether its checkpoints being overdue
-    # was said (once).
-    checkpoint_error: str | None = None
-    overdue_said: bool = False
+    checkpoint_error: str | None = None  # its last checkpoint failure, until one succeeds
 
 
 class ManagedNode:
@@ -199,7 +174,7 @@ class ManagedNode:
         self.child: Child | None = None
         self.incarnation = 0
         # What belongs to the current process; a new one at each spawn.
-        self.current = Incarnation(0, 0, 0)
+        self.current = Incarnation(0, 0)
         self.inputs: list[InputSpec] = []
         self.ring: Ring | None = None
         self.recovery: Recovery | None = None
@@ -209,6 +184,8 @@ class ManagedNode:
         self.segments = SegmentStore(sup.config.store, cfg.name)
         self.poison = PoisonGuard(sup.config.store, cfg.name, self.segments)
         self.slot = slot_path(sup.config.store, cfg.name)
+        self.watchdog = Watchdog(self.slot, sup.clock, sup.read_beat, cfg.hang_timeout,
+                                 cfg.start_timeout)
         self.resumed = False  # first started from the store of a run that did not stop
         self.standby_for: int | None = None  # the incarnation whose successor is on standby
         self.crashes_total = 0
@@ -216,7 +193,6 @@ class ManagedNode:
         # What the ring took since the heartbeat went late (None: not capturing).
         self.early_capture: Capture | None = None
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
-        self.last_checkpoint_at: float | None = None  # monotonic
         # The shadow topic of the current process (protocol.replay_topic: one per incarnation),
         # made at each spawn; earlier ones are destroyed once no replay streams on them.
         self._replay_writer: Any = None
@@ -261,9 +237,6 @@ class ManagedNode:
 
     # -- process life -------------------------------------------------------------------------
 
-    def _now_ns(self) -> int:
-        return int(self._now() * 1e9)
-
     def _on_state(self, event: StateEvent) -> None:
         self.sup.events_log.write(
             'state', self.id, old=event.old.value, new=event.new.value, reason=event.reason,
@@ -300,7 +273,8 @@ class ManagedNode:
         """Start a new process of this node (main thread only)."""
         self.incarnation += 1
         # One nonce per process: a SYNCED that answers any of its SYNCs proves the path.
-        self.current = Incarnation(self.incarnation, self._now_ns(), random.getrandbits(63))
+        self.current = Incarnation(self.incarnation, random.getrandbits(63))
+        self.watchdog.watch()
         self._new_shadow_topic()
         env = self._env(mode, self.incarnation)
         child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder,
@@ -384,8 +358,8 @@ class ManagedNode:
             return  # (FATAL: a process the supervisor ended when it gave up)
         self.child = None
         how = describe_exit(ev.code)
-        if self.current.kill_reason is not None:
-            how = f'{self.current.kill_reason}, {how}'
+        if self.watchdog.kill_reason is not None:
+            how = f'{self.watchdog.kill_reason}, {how}'
         self.sup.events_log.write('exit', self.id, code=ev.code, incarnation=ev.incarnation)
         if ev.code == 0 and not self.cfg.restart_on_clean_exit:
             self.sm.change_state(NodeState.EXITED, how)
@@ -497,9 +471,8 @@ class ManagedNode:
                 status.get('seq'), status.get('cut'), status.get('bytes'),
                 float(status.get('stall_ms', 0.0)),
             )
-            self.last_checkpoint_at = self._now()
+            self.watchdog.checkpoint_taken(self._now())
             self.current.checkpoint_error = None
-            self.current.overdue_said = False
             self.sup.events_log.write('checkpoint', self.id, **_fields(status))
         elif kind == StatusKind.SWITCHED:
             topic = str(status.get('topic'))
@@ -781,7 +754,7 @@ class ManagedNode:
             incarnation=self.incarnation, crashes=self.crashes_total,
             last_recovery_ms=last[0] if last else None,
             last_recovery_age_s=age(last[1], now) if last else None,
-            last_checkpoint_age_s=age(self.last_checkpoint_at, now),
+            last_checkpoint_age_s=age(self.watchdog.last_checkpoint_at, now),
             standby=standby,
             checkpoint_overdue_s=self.checkpoint_overdue(now),
             checkpoint_error=self.current.checkpoint_error,
@@ -809,28 +782,30 @@ class ManagedNode:
             self.sup.launcher.discard(self.cfg.command, self.sup.config.folder)
             self.standby_for = None
 
-    def checkpoint_overdue(self, now: float) -> float | None:
-        """Seconds past the time a running node must have checkpointed by, if it is late.
-
-        Checkpoints come every interval of the node's ROS time: under ``use_sim_time`` with no
-        /clock, or a /clock that stops, none come at all; so do failing ones.
-        """
-        if (self.sm.state != NodeState.RUNNING or not self.cfg.method.checkpoints
-                or self.running_since is None):
+    def _checkpointing_since(self) -> float | None:
+        """When it was released, if it runs released (RUNNING) and checkpoints; else None."""
+        if self.sm.state != NodeState.RUNNING or not self.cfg.method.checkpoints:
             return None
-        interval = float((self.current.hello or {}).get('interval') or 2.0)
-        since = max(self.last_checkpoint_at or 0.0, self.running_since)
-        late = now - since - OVERDUE_INTERVALS * interval
-        return late if late > 0 else None
+        return self.running_since
+
+    def _checkpoint_interval(self) -> float:
+        return float((self.current.hello or {}).get('interval') or 2.0)
+
+    def checkpoint_overdue(self, now: float) -> float | None:
+        """Seconds past the time a running node must have checkpointed by, if it is late
+        (``Watchdog.checkpoint_overdue``)."""
+        return self.watchdog.checkpoint_overdue(now, self._checkpointing_since(),
+                                                self._checkpoint_interval())
 
     def tick(self, now: float) -> None:
         """Time-driven work: hang detection, SYNC resends, arming, backoff expiry, standby."""
         state = self.sm.state
         if state in _LIVE:
-            self._check_heartbeat(now)
-        if not self.current.overdue_said and self.checkpoint_overdue(now) is not None:
-            self.current.overdue_said = True
-            age_s = None if self.last_checkpoint_at is None else now - self.last_checkpoint_at
+            self._watch(now)
+        overdue = self.watchdog.overdue_news(now, self._checkpointing_since(),
+                                             self._checkpoint_interval())
+        if overdue is not None:
+            age_s = overdue.since_s
             _logger.warning(
                 '%s %s: no checkpoint for %s: the interval follows the node\'s ROS time (under '
                 'use_sim_time, is /clock advancing?), or its checkpoints fail (see its errors); '
@@ -870,55 +845,41 @@ class ManagedNode:
                     protocol.pack_release(self.incarnation, self.segments.next_number(), 0)
                 )
 
-    def _check_heartbeat(self, now: float) -> None:
-        """Crash detection beyond exit codes: a node that stops beating is killed."""
+    def _watch(self, now: float) -> None:
+        """Crash detection beyond exit codes: act on what the watchdog finds."""
         child = self.child
         if child is None:
             return
-        if self.current.killed:
-            return  # its exit is reaped as a crash
-        if self.current.hang_kill_at is not None:
-            if now >= self.current.hang_kill_at:
-                self._kill(child)
-            return
-        now_ns = self._now_ns()
-        beat = self.sup.read_beat(self.slot)
-        if beat is None or beat < self.current.spawned_ns:
-            # Not beating yet: still importing, initialising, constructing the node.
-            limit, since, what = self.cfg.start_timeout, self.current.spawned_ns, 'start'
-        else:
-            limit, since, what = self.cfg.hang_timeout, beat, 'heartbeat'
-            self._watch_stall((now_ns - beat) / 1e9)
-            if self.current.first_beat_ns is None:
-                self.current.first_beat_ns = now_ns
-            beating_for = now_ns - self.current.first_beat_ns
-            if self.current.hello is None and beating_for > HELLO_TIMEOUT * 1e9:
-                self._unheard(child, beating_for / 1e9, now)
-                return
-        if limit is None or now_ns - since <= limit * 1e9:
-            return
-        self.current.hung_for = (now_ns - since) / 1e9
-        self.current.kill_reason = f'hung (no {what} for {self.current.hung_for:.1f} s)'
+        for finding in self.watchdog.check(now, heard=self.current.hello is not None):
+            if isinstance(finding, Beat):
+                self._keep_inputs_while_late(finding)
+            elif isinstance(finding, Hung):
+                self._on_hung(child, finding)
+            elif isinstance(finding, Unheard):
+                self._on_unheard(child, finding)
+            else:  # KillDue: the hung process has printed its stacks
+                child.send_signal(signal.SIGKILL)
+
+    def _on_hung(self, child: Child, hung: Hung) -> None:
+        """No first beat, or no beat for hang_timeout: say what it was doing, signal it."""
         busy = self.poison.died_on(self.incarnation)
         on = f' while applying {busy.topic} {busy.ident}' if busy is not None else ''
         _logger.error(
             '%s %s: hung: no %s for %.1f s (limit %.1f s)%s; killing pid %d', LOG_PREFIX,
-            self.id, what, self.current.hung_for, limit, on, child.pid,
+            self.id, hung.waiting_for, hung.stalled_s, hung.limit_s, on, child.pid,
         )
         self.sup.events_log.write(
             'hang', self.id, incarnation=self.incarnation,
-            stalled_s=round(self.current.hung_for, 3),
-            waiting_for=what, topic=busy.topic if busy else None,
+            stalled_s=round(hung.stalled_s, 3),
+            waiting_for=hung.waiting_for, topic=busy.topic if busy else None,
             source_ns=busy.ident[0] if busy else None, seq=busy.ident[1] if busy else None,
         )
-        if what == 'heartbeat':
-            # faulthandler in the node prints every thread's stack: where it hung.
-            child.send_signal(signal.SIGUSR1)
-            self.current.hang_kill_at = now + HANG_DUMP_GRACE
-        else:
-            self._kill(child)
+        # SIGUSR1 for a heartbeat that stopped: faulthandler in the node prints every
+        # thread's stack, where it hung, and SIGKILL follows (KillDue). SIGKILL at once for a
+        # process that never beat: it has no stack worth printing.
+        child.send_signal(hung.signal)
 
-    def _watch_stall(self, stalled: float) -> None:
+    def _keep_inputs_while_late(self, beat: Beat) -> None:
         """S2 early: while the heartbeat is late, the ring keeps every input message.
 
         If the node is then killed as hung (or dies), its recovery starts from all of them
@@ -927,14 +888,12 @@ class ManagedNode:
         ring = self.ring if self.cfg.method.logs else None
         if ring is None or self.sm.state != NodeState.RUNNING or self.recovery is not None:
             return
-        limit = self.cfg.hang_timeout
-        suspect = STALL_SUSPECT if limit is None else min(STALL_SUSPECT, limit / 2)
-        if stalled >= suspect and self.early_capture is None:
+        if beat.late and self.early_capture is None:
             self.early_capture = Capture()
             ring.activate(self.early_capture)
             _logger.info('%s %s: no heartbeat for %.1f s: RORY keeps its inputs from now on',
-                         LOG_PREFIX, self.id, stalled)
-        elif stalled < suspect and self.early_capture is not None:
+                         LOG_PREFIX, self.id, beat.age_s)
+        elif not beat.late and self.early_capture is not None:
             self._stop_early_capture(f'beating again ({len(self.early_capture)} messages '
                                      'kept meanwhile, dropped)')
 
@@ -946,22 +905,15 @@ class ManagedNode:
             self.ring.deactivate()
         _logger.info('%s %s: input capture stopped: %s', LOG_PREFIX, self.id, why)
 
-    def _unheard(self, child: Child, beating_for: float, now: float) -> None:
+    def _on_unheard(self, child: Child, unheard: Unheard) -> None:
         """The process runs but its HELLO never arrived: replace it (a crash, recovered)."""
-        self.current.kill_reason = f'unheard (no HELLO after {beating_for:.1f} s of running)'
         _logger.error(
             '%s %s: pid %d has run %.1f s without its HELLO reaching the supervisor (its '
             'status publisher was never discovered); replacing it', LOG_PREFIX, self.id,
-            child.pid, beating_for,
+            child.pid, unheard.beating_s,
         )
         self.sup.events_log.write('unheard', self.id, incarnation=self.incarnation,
-                                  beating_s=round(beating_for, 3))
-        self._kill(child)
-
-    def _kill(self, child: Child) -> None:
-        """SIGKILL the current process, once; its exit is then reaped as a crash."""
-        self.current.killed = True
-        self.current.hang_kill_at = None
+                                  beating_s=round(unheard.beating_s, 3))
         child.send_signal(signal.SIGKILL)
 
     def stop(self) -> None:

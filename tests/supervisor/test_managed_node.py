@@ -13,7 +13,7 @@ from fake_supervisor import Harness
 
 from rory_runtime import protocol
 from rory_runtime.supervisor.states import NodeState
-from rory_runtime.supervisor.supervisor import HANG_DUMP_GRACE, HELLO_TIMEOUT
+from rory_runtime.supervisor.watchdog import HANG_DUMP_GRACE, HELLO_TIMEOUT
 
 S = NodeState
 

@@ -3,7 +3,9 @@ decisions driven by hand, with no ROS process, no DDS and no real child process.
 
 ``Harness`` holds one ``ManagedNode`` over a fake clock, launcher, event log, safe state, ring
 and rclpy node; a test starts it, feeds it statuses and exits as a node process would, and
-reads back what the supervisor did (states, events, signals, envelopes, the safe state).
+reads back what the supervisor did (states, events, signals, envelopes, the safe state, what
+the ring was given). The recovery log and the replay streamer are the real ones, on a store in
+the test's tmp_path: a ``rory`` node's replay runs as it does under the supervisor.
 """
 
 from __future__ import annotations
@@ -18,9 +20,12 @@ from typing import Any
 import yaml
 
 from rory_runtime import protocol
+from rory_runtime.log import LogEntry
+from rory_runtime.protocol import InputSpec
 from rory_runtime.supervisor.config import SupervisorConfig, load_config
 from rory_runtime.supervisor.ring import Ring
-from rory_runtime.supervisor.supervisor import ChildExited, GateCall, ManagedNode
+from rory_runtime.supervisor.states import NodeState
+from rory_runtime.supervisor.supervisor import ChildExited, GateCall, ManagedNode, Released
 
 
 class FakeClock:
@@ -38,7 +43,8 @@ class FakeClock:
 
 
 class FakeChild:
-    """A node process: ends when the test says, or on SIGKILL; records every signal."""
+    """A node process: ends when the test says, or on SIGINT, SIGTERM or SIGKILL (a node
+    stops on SIGINT); records every signal."""
 
     def __init__(self, pid: int, argv: list[str], env: dict[str, str]) -> None:
         self.pid = pid
@@ -56,7 +62,8 @@ class FakeChild:
         self._done.set()
 
     def wait(self, timeout: float | None = None) -> int:
-        self._done.wait(timeout)
+        if not self._done.wait(timeout):
+            raise TimeoutError(f'pid {self.pid} still runs')
         assert self._code is not None
         return self._code
 
@@ -65,8 +72,8 @@ class FakeChild:
 
     def send_signal(self, sig: int) -> None:
         self.signals.append(sig)
-        if sig == signal.SIGKILL:
-            self.finish(-signal.SIGKILL)
+        if sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            self.finish(-sig)
 
 
 class FakeLauncher:
@@ -162,30 +169,43 @@ class FakeRosNode:
 
 
 class FakeRing:
-    """A ring whose readers always match; activation only recorded."""
+    """A ring whose readers always match and never take a message: it records which sink it
+    was activated for (with the entries an early capture handed over), and which topics are
+    active, as the real one does."""
 
     def __init__(self) -> None:
-        self.topics: dict[str, Any] = {}
+        self.topics: dict[str, InputSpec] = {}
         self.active_topics: set[str] = set()
-        self.activations = 0
+        self.sinks: list[Any] = []  # every activation's sink, in order
+        self.handed_over: list[list[LogEntry]] = []  # and what led its backlog
 
-    def ensure(self, inputs: Any) -> None:
-        pass
+    @property
+    def activations(self) -> int:
+        return len(self.sinks)
+
+    def ensure(self, inputs: list[InputSpec]) -> None:
+        self.topics.update({spec.topic: spec for spec in inputs})
 
     def publisher_counts(self) -> dict[str, int]:
-        return {}
+        return dict.fromkeys(self.topics, 1)
 
-    def offered_qos(self, topic: str) -> Any:
-        return None
+    def offered_qos(self, topic: str) -> list[Any]:
+        return []
 
     def publisher_count(self, topic: str) -> int:
         return 1
 
-    def activate(self, sink: Any, early: Any = None) -> None:
-        self.activations += 1
+    def activate(self, sink: Any, before: list[LogEntry] | None = None) -> None:
+        self.sinks.append(sink)
+        self.handed_over.append(list(before or ()))
+        self.active_topics = set(self.topics)
+        sink.add_backlog(list(before or ()))
 
     def deactivate(self, topic: str | None = None) -> None:
-        pass
+        if topic is None:
+            self.active_topics.clear()
+        else:
+            self.active_topics.discard(topic)
 
 
 class FakeSupervisor:
@@ -215,6 +235,10 @@ class FakeSupervisor:
     def post_status(self, node_id: str, text: str) -> None:
         pass
 
+
+INPUT = InputSpec(topic='/in', msgtype='std_msgs/msg/String', reliable=True,
+                  transient_local=False, depth=10)
+"""The one input of a node in these tests (its ring reader, its handover)."""
 
 RELEASED_STATS = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0,
                   'ticks_replayed': 0, 'clock_fallbacks': 0, 'parameter_changes_replayed': 0,
@@ -248,15 +272,33 @@ class Harness:
                              'incarnation': self.node.incarnation, **fields})
 
     def hello(self, **fields: Any) -> None:
-        self.status('hello', **{'inputs': [], 'restored': None, 'refused': [],
+        inputs = [INPUT.to_json()] if self.node.cfg.method.logs else []
+        self.status('hello', **{'inputs': inputs, 'restored': None, 'refused': [],
                                 'restore_ms': 1.0, **fields})
+
+    def synced(self) -> None:
+        """SYNCED, answering the supervisor's SYNC (its nonce)."""
+        self.status('synced', nonce=self.node.current.sync_nonce,
+                    live_publishers={INPUT.topic: 1})
+
+    def replayed(self) -> None:
+        """Wait for the replay streamer to have sent RELEASE (it posts Released)."""
+        event = self.sup.events.get(timeout=5.0)
+        assert isinstance(event, Released), event
 
     def released(self, **stats: Any) -> None:
         self.status('released', **{**RELEASED_STATS, **stats})
 
     def up(self) -> None:
-        """HELLO and RELEASED: the process came up (restart and checkpoint release at once)."""
+        """The process came up: HELLO and RELEASED (restart and checkpoint release at once);
+        for a method that logs, SYNCED and the replay first when it recovers."""
         self.hello()
+        if self.node.sm.state == NodeState.REPLAYING:
+            self.synced()
+            self.replayed()
+        elif self.node.sm.state == NodeState.ARMING:
+            self.synced()
+            self.tick()  # the ring matches at once: RELEASE
         self.released()
 
     def beat(self, at: float | None = None) -> None:
@@ -269,8 +311,11 @@ class Harness:
         self.reap()
 
     def reap(self) -> None:
-        """Deliver the exit the reaper thread posted."""
+        """Deliver the exit the reaper thread posted (a Released before it is passed over, as
+        the main loop does)."""
         event = self.sup.events.get(timeout=5.0)
+        while isinstance(event, Released):
+            event = self.sup.events.get(timeout=5.0)
         assert isinstance(event, ChildExited), event
         self.node.on_exit(event)
 

@@ -1,7 +1,11 @@
 """The supervisor's per-node decisions with fakes for every port (fake_supervisor.py): no ROS
-process, no DDS, a clock that moves when told. Crashes in each state, hangs, backoff and its
-reset, giving up, a second crash during a recovery, a supervisor restarted on its store, the
-release gate and a refused stale checkpoint."""
+process, no DDS, a clock that moves when told. Crashes in each state (starting, arming,
+running, restoring, replaying, gated, during the handover), hangs and the early capture of a
+late node's inputs, backoff and its reset, giving up, a second crash during a recovery, a
+supervisor restarted on its store, the release gate, a refused stale checkpoint, a clean exit
+and a stop during a recovery; on each path the safe state is held once per recovery and
+released once, or kept held when nothing will bring the node back (``safety.log`` records
+every call)."""
 
 from __future__ import annotations
 
@@ -9,13 +13,18 @@ import signal
 from pathlib import Path
 
 import pytest
-from fake_supervisor import Harness
+from fake_supervisor import INPUT, Harness
 
 from rory_runtime import protocol
+from rory_runtime.log import LogEntry
+from rory_runtime.supervisor.recovery import RecoveryLog
+from rory_runtime.supervisor.ring import Capture
 from rory_runtime.supervisor.states import NodeState
-from rory_runtime.supervisor.watchdog import HANG_DUMP_GRACE, HELLO_TIMEOUT
+from rory_runtime.supervisor.watchdog import HANG_DUMP_GRACE, HELLO_TIMEOUT, STALL_SUSPECT
 
 S = NodeState
+HELD = [('hold', 'n')]
+ONCE = [('hold', 'n'), ('release', 'n')]
 
 
 def _started(tmp_path: Path, **node: object) -> Harness:
@@ -67,7 +76,7 @@ def test_a_crash_during_the_first_start_is_recovered_like_any_other(tmp_path: Pa
     h.exit(1)
     assert h.states() == ['STARTING', 'CRASHED', 'RESTORING'] and h.sup.safety.holders == {'n'}
     h.up()
-    assert h.node.sm.state == S.RUNNING and not h.sup.safety.holders
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
 
 
 @pytest.mark.parametrize('before', ['hello', 'nothing'])
@@ -105,8 +114,10 @@ def test_a_crash_loop_backs_off_doubling_then_gives_up_holding_the_safe_state(
     h.exit(1)
     assert h.node.sm.state == S.FATAL and '3 restarts in a row failed' in h.states()[-1] + (
         h.sup.events_log.of('fatal')[0]['reason'])
-    assert h.sup.safety.holders == {'n'}  # nothing will release it
+    assert h.sup.safety.log == HELD  # nothing will release it
     assert len(h.sup.launcher.children) == 4
+    h.node.stop()
+    assert h.node.sm.state == S.STOPPED and h.sup.safety.log == HELD
 
 
 def test_a_start_that_ran_stable_after_resets_the_crash_count(tmp_path: Path) -> None:
@@ -175,7 +186,7 @@ def test_a_supervisor_restarted_on_its_store_resumes_the_node_as_a_recovery(
     assert h.child.env[protocol.ENV_MODE] == 'recover'
     assert h.sup.events_log.of('resumed')[0]['unrecorded_s'] is None
     h.up()
-    assert h.node.sm.state == S.RUNNING and not h.sup.safety.holders
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
 
 
 GATE = {'release_gate': {'timeout': 30.0, 'on_timeout': 'give_up'}}
@@ -198,7 +209,7 @@ def test_a_gated_node_waits_for_the_call_then_opens_and_releases_the_safe_state(
     h.tick(0.06)  # no OPENED yet: OPEN again (SYNC_PERIOD later)
     assert h.envelopes() == [protocol.Open(2)] * 2
     h.status('opened', muted=7)
-    assert h.node.sm.state == S.RUNNING and not h.sup.safety.holders
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
     (recovered,) = h.sup.events_log.of('recovered')
     assert recovered['gate_ms'] == pytest.approx(10060.0) and 'called' in recovered['gate']
     assert h.sup.events_log.of('gate_opened')[0]['muted'] == 7
@@ -230,7 +241,7 @@ def test_a_gate_nobody_calls_gives_up_at_its_timeout_holding_the_safe_state(
     h.tick(1.5)
     assert h.node.sm.state == S.FATAL and gated.signals == [signal.SIGKILL]
     assert 'within 30 s; on_timeout: give_up' in h.sup.events_log.of('fatal')[0]['reason']
-    assert h.sup.safety.holders == {'n'}
+    assert h.sup.safety.log == HELD
     h.sup.events.get(timeout=5.0)  # its exit, reaped: ignored, it was ended on purpose
     assert len(h.sup.launcher.children) == 2
 
@@ -243,7 +254,11 @@ def test_a_crash_at_the_gate_is_a_crash_of_the_same_recovery(tmp_path: Path) -> 
     assert h.states()[-3:] == ['GATED', 'CRASHED', 'BACKOFF']
     h.tick(1.0)
     h.up()
-    assert h.node.sm.state == S.GATED and h.sup.safety.holders == {'n'}
+    assert h.node.sm.state == S.GATED and h.sup.safety.log == HELD
+    h.call_release()
+    h.status('opened', muted=0)
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.sup.events_log.of('recovered')[0]['crashes'] == 2
 
 
 def test_a_stale_variable_under_refuse_stops_the_node_with_the_safe_state_held(
@@ -257,4 +272,172 @@ def test_a_stale_variable_under_refuse_stops_the_node_with_the_safe_state_held(
     assert h.node.sm.state == S.FATAL and h.child.signals == [signal.SIGKILL]
     reason = h.sup.events_log.of('fatal')[0]['reason']
     assert reason.startswith('checkpoint too old for pose (age 42.0 s on the system clock')
-    assert h.sup.safety.holders == {'n'} and h.node.health(h.clock()).fatal_reason == reason
+    assert h.sup.safety.log == HELD and h.node.health(h.clock()).fatal_reason == reason
+
+
+# -- methods that log: the ring, R and the replay -------------------------------------------
+
+
+def _logging(tmp_path: Path, **node: object) -> Harness:
+    """A ``rory`` node started and armed: its ring reads its input, passive."""
+    h = _started(tmp_path, method='rory', **node)
+    assert h.states() == ['STARTING', 'ARMING', 'RUNNING']
+    (ring,) = h.sup.rings
+    assert set(ring.topics) == {INPUT.topic} and ring.activations == 0
+    return h
+
+
+def test_a_rory_node_arms_then_recovers_with_the_ring_taking_its_inputs_into_r(
+    tmp_path: Path
+) -> None:
+    h = _logging(tmp_path)
+    (ring,) = h.sup.rings
+    h.exit(-signal.SIGKILL)
+    assert h.states()[-2:] == ['CRASHED', 'RESTORING']
+    assert ring.activations == 1 and isinstance(ring.sinks[0], RecoveryLog)  # S2
+    h.hello()
+    assert h.node.sm.state == S.REPLAYING
+    assert h.envelopes()[-1] == protocol.Sync(2, h.node.current.sync_nonce)
+    h.synced()
+    h.replayed()  # nothing logged after the cut, R empty: RELEASE at once
+    assert isinstance(h.envelopes()[-1], protocol.Release) and ring.sinks[0].sealed
+    h.clock.advance(0.25)
+    h.released()
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    (recovered,) = h.sup.events_log.of('recovered')
+    assert recovered['total_ms'] == pytest.approx(250.0) and recovered['replay'] == 'fast'
+
+
+def test_a_crash_while_arming_is_recovered_like_any_other(tmp_path: Path) -> None:
+    h = Harness(tmp_path, method='rory')
+    h.node.start()
+    h.hello()
+    assert h.node.sm.state == S.ARMING
+    h.exit(1)
+    assert h.states()[-3:] == ['ARMING', 'CRASHED', 'RESTORING']
+    assert h.sup.rings[0].activations == 1 and h.sup.safety.log == HELD
+    h.up()
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+
+
+def test_a_crash_before_the_first_hello_starts_r_when_the_ring_is_made(tmp_path: Path) -> None:
+    h = Harness(tmp_path, method='rory')
+    h.node.start()
+    h.exit(1)
+    assert h.sup.rings == [] and h.node.recovery is not None and h.node.recovery.rlog is None
+    h.hello()  # the ring is made and joins the recovery: S2 now
+    (ring,) = h.sup.rings
+    assert ring.activations == 1 and h.node.recovery.ring is ring
+    h.synced()
+    h.replayed()
+    h.released()
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+
+
+@pytest.mark.parametrize('when', ['before_synced', 'after_release_sent'])
+def test_a_crash_while_replaying_is_the_same_recovery(tmp_path: Path, when: str) -> None:
+    h = _logging(tmp_path)
+    (ring,) = h.sup.rings
+    h.exit(-signal.SIGKILL)
+    h.hello()
+    if when == 'after_release_sent':
+        h.synced()
+        h.replayed()  # R sealed: what comes next is relayed, and the process may have had it
+    h.tick(0.1)
+    h.exit(-signal.SIGSEGV)
+    assert h.states()[-3:] == ['REPLAYING', 'CRASHED', 'BACKOFF'] and h.sup.safety.log == HELD
+    # An open R keeps recording; a sealed one is followed by a new R from the ring's backlog.
+    assert ring.activations == (2 if when == 'after_release_sent' else 1)
+    h.tick(0.5)
+    h.up()
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    (recovered,) = h.sup.events_log.of('recovered')
+    assert recovered['crashes'] == 2
+    assert recovered['total_ms'] == pytest.approx(600.0)  # from the first crash
+
+
+def test_the_handover_ends_the_recovery_without_releasing_the_safe_state_again(
+    tmp_path: Path
+) -> None:
+    h = _logging(tmp_path)
+    (ring,) = h.sup.rings
+    h.exit(-signal.SIGKILL)
+    h.up()
+    assert h.node.recovery is not None and ring.active_topics == {INPUT.topic}  # relaying
+    h.status('switched', topic=INPUT.topic, passed_by_relay=[])
+    assert h.node.recovery is None and ring.active_topics == set()
+    assert h.sup.safety.log == ONCE and h.node.sm.state == S.RUNNING
+
+
+def test_a_crash_during_the_handover_is_a_recovery_of_its_own(tmp_path: Path) -> None:
+    h = _logging(tmp_path)
+    (ring,) = h.sup.rings
+    h.exit(-signal.SIGKILL)
+    h.up()
+    first = h.node.recovery
+    h.exit(-signal.SIGKILL)  # released, still relaying
+    assert first is not None and first.streamer is None and first.rlog is not None
+    assert first.rlog.sealed
+    assert h.node.recovery is not first and ring.activations == 2
+    h.tick(1.0)  # ran for 0 s: the second crash in a row waits the backoff
+    h.up()
+    assert [r['crashes'] for r in h.sup.events_log.of('recovered')] == [1, 1]
+    assert h.sup.safety.log == ONCE + ONCE
+
+
+def test_a_supervisor_restarted_on_its_store_joins_the_ring_at_hello(tmp_path: Path) -> None:
+    h = Harness(tmp_path, method='rory')
+    h.node.start_resumed(down_since=None)
+    assert h.sup.rings == [] and h.sup.safety.log == HELD
+    h.hello()
+    assert h.sup.rings[0].activations == 1 and h.node.sm.state == S.REPLAYING
+    h.synced()
+    h.replayed()
+    h.released()
+    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+
+
+def test_a_late_heartbeat_keeps_the_inputs_and_a_hang_hands_them_to_r(tmp_path: Path) -> None:
+    h = _logging(tmp_path, hang_timeout=5.0)
+    (ring,) = h.sup.rings
+    h.tick(STALL_SUSPECT)
+    assert ring.activations == 1 and isinstance(ring.sinks[0], Capture)  # S2 early
+    h.beat()
+    h.tick(0.1)  # only slow: the capture is dropped
+    assert h.node.early_capture is None and ring.active_topics == set()
+    h.tick(STALL_SUSPECT)
+    capture = h.node.early_capture
+    assert capture is not None and ring.activations == 2
+    # What the ring takes meanwhile (the node had not logged it).
+    taken = LogEntry(INPUT.topic, INPUT.msgtype, 5, 5, 7, b'\x00\x01\x00\x00\x01\x00\x00\x00\x00')
+    capture.add(taken)
+    h.tick(5.0)
+    assert h.child.signals == [signal.SIGUSR1]
+    h.tick(HANG_DUMP_GRACE)
+    h.reap()
+    assert h.node.early_capture is None and ring.activations == 3
+    rlog = ring.sinks[2]
+    assert isinstance(rlog, RecoveryLog) and ring.handed_over[2] == [taken]
+    assert rlog.entries == [taken] and h.sup.safety.log == HELD
+
+
+def test_a_clean_exit_during_a_recovery_releases_the_safe_state_once(tmp_path: Path) -> None:
+    h = _started(tmp_path)
+    h.exit(-signal.SIGKILL)
+    h.hello()
+    h.exit(0)
+    assert h.node.sm.state == S.EXITED and h.node.recovery is None
+    assert h.sup.safety.log == ONCE and not h.sup.events_log.of('recovered')
+
+
+def test_stopping_during_a_recovery_keeps_the_safe_state_held(tmp_path: Path) -> None:
+    h = _logging(tmp_path)
+    h.exit(-signal.SIGKILL)
+    h.hello()
+    h.synced()
+    h.replayed()
+    recovery = h.node.recovery
+    child = h.child
+    h.node.stop()
+    assert child.signals == [signal.SIGINT] and h.node.sm.state == S.STOPPED
+    assert recovery is not None and recovery.streamer is None and h.sup.safety.log == HELD

@@ -17,8 +17,8 @@ import statistics
 import time
 from pathlib import Path
 
-from .scenario import Kill, ScenarioResult, run
-from .simrun import exit_on_sigterm
+from rory_eval.harness.scenario import Kill, ScenarioResult, run
+from rory_eval.harness.simrun import exit_on_sigterm
 
 Config = tuple[str, str, bool]
 """(method, replay pace, warm standby)."""

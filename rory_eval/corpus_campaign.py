@@ -34,8 +34,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rory_eval.scenario import Kill, Program, ScenarioResult, child_process, run, scenario_env
-from rory_eval.simrun import exit_on_sigterm
+from rory_eval.harness.scenario import (
+    Kill,
+    Program,
+    ScenarioResult,
+    child_process,
+    run,
+    scenario_env,
+)
+from rory_eval.harness.simrun import exit_on_sigterm
 
 CORPUS = Path(__file__).resolve().parent.parent / 'tests' / 'integration' / 'corpus'
 COUNT = 200  # 4 s at 50 Hz

@@ -39,8 +39,8 @@ from pathlib import Path
 from typing import Any
 
 from rory_eval.discovery import measure
-from rory_eval.process_usage import read_process
-from rory_eval.simrun import exit_on_sigterm
+from rory_eval.harness.process_usage import read_process
+from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.dds import fast_rediscovery_env
 
 IDLE = r'''

@@ -25,8 +25,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from rory_eval.scenario import Kill, Program, ScenarioResult, run
-from rory_eval.simrun import exit_on_sigterm
+from rory_eval.harness.scenario import Kill, Program, ScenarioResult, run
+from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.protocol import seq_ranges
 
 FLAKY_DIR = Path(__file__).resolve().parent / 'flaky'

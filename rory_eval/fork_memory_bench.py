@@ -38,7 +38,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from rory_eval.process_usage import read_process, tree_pids
+from rory_eval.harness.process_usage import read_process, tree_pids
 
 LAYOUTS = ('bare', 'separate', 'zygote', 'parent')
 ROLES = ('node', 'supervisor', 'standby')

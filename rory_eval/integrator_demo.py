@@ -13,7 +13,7 @@ import os
 import statistics
 from pathlib import Path
 
-from .scenario import Kill, ScenarioResult, run
+from rory_eval.harness.scenario import Kill, ScenarioResult, run
 
 METHODS = ('restart', 'checkpoint', 'replay', 'rory')
 

@@ -2,7 +2,7 @@
 
     python -m rory_eval.length_bench [--crash-at 9 60 300] [--rate 10] [--out length-out]
 
-The integrator scenario (``rory_eval/scenario.py``: numbers 1..N at ``--rate`` Hz, a SIGKILL
+The integrator scenario (``rory_eval/harness/scenario.py``: numbers 1..N at ``--rate`` Hz, a SIGKILL
 ``T`` seconds after the first one, a checkpoint every 2 s) for each crash time T, once under
 ``replay`` (no checkpoints: everything since the start is replayed) and once under ``rory``
 (restore, then replay what came after the checkpoint), both with fast replay and each as
@@ -27,7 +27,7 @@ import matplotlib
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # after the backend is chosen
 
-from .scenario import Kill, run
+from rory_eval.harness.scenario import Kill, run
 
 METHODS = ('replay', 'rory')
 STEPS = ('restart_ms', 'restore_ms', 'sync_ms', 'replay_ms', 's4_ms')

@@ -29,9 +29,9 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from rory_eval.process_usage import TreeSampler
-from rory_eval.scenario import EXAMPLE, prepare, stop_process
-from rory_eval.simrun import exit_on_sigterm
+from rory_eval.harness.process_usage import TreeSampler
+from rory_eval.harness.scenario import EXAMPLE, prepare, stop_process
+from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.dds import fast_rediscovery_env
 
 CONFIGS = ('bare', 'bare_udp', 'restart', 'checkpoint', 'replay', 'rory')

@@ -35,10 +35,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from rory_eval.harness.process_usage import read_process
+from rory_eval.harness.scenario import Program, prepare, stop_process
+from rory_eval.harness.simrun import exit_on_sigterm
 from rory_eval.light_node_bench import alternating, plain_env
-from rory_eval.process_usage import read_process
-from rory_eval.scenario import Program, prepare, stop_process
-from rory_eval.simrun import exit_on_sigterm
 
 REPO = Path(__file__).resolve().parent.parent
 SINK = REPO / 'examples' / 'scan_sink'

@@ -2,7 +2,7 @@
 
     python -m rory_eval.multihost_bench [--runs 5] [--kill-at 2.5] [--out bench-out/multihost]
 
-Hosts are network namespaces joined by a veth pair (:mod:`rory_eval.hosts`, needs root). The
+Hosts are network namespaces joined by a veth pair (:mod:`rory_eval.harness.hosts`, needs root). The
 integrator, its supervisor and an observer run on host ``a``; the count publisher runs on host
 ``b`` ("across hosts") or on ``a`` beside them ("one host"), alternating run by run so that
 machine load affects both alike. Every process speaks UDPv4 only with discovery range SUBNET,
@@ -10,8 +10,9 @@ in both layouts: the only difference is the network path of ``/numbers``. Recove
 supervisor's own measure, crash detected -> released (the ``recovered`` event's ``total_ms``),
 for RORY with its warm standby (the default), replay paced and fast.
 
-:func:`run_on_hosts` is the scenario itself (``rory_eval.scenario.run`` across namespaces); the
-integration test ``tests/integration/test_multihost.py`` uses it too, with a link outage.
+:func:`run_on_hosts` is the scenario itself (``rory_eval.harness.scenario.run`` across
+namespaces); the integration test ``tests/integration/test_multihost.py`` uses it too, with a
+link outage.
 """
 
 from __future__ import annotations
@@ -36,8 +37,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Bool, Int64, String
 
-from .hosts import Host, Hosts, netns_available, stop
-from .scenario import (
+from rory_eval.harness.hosts import Host, Hosts, netns_available, stop
+from rory_eval.harness.scenario import (
     EXAMPLE,
     INTEGRATOR,
     EventsFile,

@@ -38,7 +38,7 @@ from typing import Any
 
 from rory_eval.evaluation.plan import BARE, TARGETS, WORLDS, RunSpec, duration_for
 from rory_eval.evaluation.runner import RunRecord, execute, instrument
-from rory_eval.simrun import exit_on_sigterm
+from rory_eval.harness.simrun import exit_on_sigterm
 
 CONFIGS = (BARE, 'restart', 'checkpoint', 'replay', 'rory')
 """In the order they add mechanisms."""

@@ -42,10 +42,9 @@ from typing import Any
 
 import yaml
 
+from rory_eval.harness.process_usage import peak_rss_mb, tree_cpu_ticks, tree_pids
+from rory_eval.harness.scenario import scenario_env
 from rory_runtime.log import SegmentStore
-
-from .process_usage import peak_rss_mb, tree_cpu_ticks, tree_pids
-from .scenario import scenario_env
 
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE = REPO / 'examples' / 'sensor_sink'

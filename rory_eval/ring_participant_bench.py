@@ -23,7 +23,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from rory_eval.process_usage import read_process
+from rory_eval.harness.process_usage import read_process
 
 CONFIGS = ('own', 'shared')
 

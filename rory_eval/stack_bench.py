@@ -31,8 +31,8 @@ from typing import Any
 
 import yaml
 
-from rory_eval.simrun import REPO, SimRun, exit_on_sigterm, store_events
-from rory_eval.stack import GOAL_XY, Strike, Striker, instrument
+from rory_eval.harness.simrun import REPO, SimRun, exit_on_sigterm, store_events
+from rory_eval.harness.stack import GOAL_XY, Strike, Striker, instrument
 
 STACK = ('grid_slam', 'graph_slam', 'depth_mapper', 'amcl', 'lama_local', 'navigator')
 DURATION = 40.0  # sim s: the navigator's 30 s to real_room's goal, and then some

@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from .scenario import Program, child_process, prepare, scenario_env
+from rory_eval.harness.scenario import Program, child_process, prepare, scenario_env
 
 EXAMPLE = Path(__file__).resolve().parent.parent / 'examples' / 'big_state'
 

@@ -37,8 +37,8 @@ from typing import Any
 from hypothesis import strategies as st
 
 from rory_eval.fault_campaign import FLAKY
-from rory_eval.scenario import Kill, ScenarioResult, run
-from rory_eval.simrun import exit_on_sigterm
+from rory_eval.harness.scenario import Kill, ScenarioResult, run
+from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.protocol import seq_ranges
 
 FAULTS = ('SIGKILL', 'SIGSEGV', 'raise', 'hang')

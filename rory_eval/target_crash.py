@@ -26,7 +26,7 @@ import yaml
 
 from rory_eval.evaluation.plan import TARGETS as EVAL_TARGETS
 from rory_eval.evaluation.runner import Killer
-from rory_eval.simrun import REPO, SimRun, exit_on_sigterm, store_events
+from rory_eval.harness.simrun import REPO, SimRun, exit_on_sigterm, store_events
 
 
 @dataclass(frozen=True)

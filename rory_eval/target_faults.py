@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from rory_eval.flaky.inject import HANG_FLAG, RAISE_FLAG
-from rory_eval.simrun import REPO, exit_on_sigterm, store_events, wait_for_clock
+from rory_eval.harness.simrun import REPO, exit_on_sigterm, store_events, wait_for_clock
 from rory_eval.target_crash import (
     TARGETS,
     Comparison,

@@ -38,7 +38,14 @@ import numpy as np
 import yaml
 
 from rory_eval.evaluation.plan import BARE, TARGETS, Kind, RunSpec, TargetSpec
-from rory_eval.simrun import LATCHED, REPO, SimRun, SimRunResult, store_events, wait_for_clock
+from rory_eval.harness.simrun import (
+    LATCHED,
+    REPO,
+    SimRun,
+    SimRunResult,
+    store_events,
+    wait_for_clock,
+)
 
 RECORD = 'record.json'
 KILL_TIMEOUT = 120.0  # s to wait for the clock before giving up on the kill

@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from rory_eval.harness.simrun import LATCHED, REPO, SimRun, SimRunResult
 from rory_eval.metrics import position_errors
-from rory_eval.simrun import LATCHED, REPO, SimRun, SimRunResult
 
 WORLDS = ('office_small', 'workshop', 'real_room')
 # Sim seconds of the route runs: the route (104, 124, 80 s at 0.3 m/s) and a margin.

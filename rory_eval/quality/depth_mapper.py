@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from rory_eval.harness.simrun import LATCHED, REPO, SimRun
 from rory_eval.metrics import distance_to_geometry, position_errors
-from rory_eval.simrun import LATCHED, REPO, SimRun
 from sim.worlds import Box, get_world
 
 FloatArray = npt.NDArray[np.float64]

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from rory_eval.harness.simrun import LATCHED, REPO, SimRun
 from rory_eval.metrics import grid_from_msg, map_score, position_errors
-from rory_eval.simrun import LATCHED, REPO, SimRun
 from sim.maps import ground_truth_map
 from sim.worlds import get_world
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
+from rory_eval.harness.simrun import REPO
 from rory_eval.quality.amcl import LocalizerSpec, evaluate
-from rory_eval.simrun import REPO
 
 LAMA_LOCAL = LocalizerSpec('lama_local', REPO / 'targets' / 'lama_local' / 'lama_local_node.py',
                            '/lama_local/pose')

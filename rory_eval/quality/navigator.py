@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rory_eval.simrun import REPO, SimRun
+from rory_eval.harness.simrun import REPO, SimRun
 
 NODE = REPO / 'targets' / 'navigator' / 'navigator_node.py'
 AMCL = REPO / 'targets' / 'amcl' / 'amcl_node.py'
@@ -173,7 +173,7 @@ def run_goal(world: str, goal: str, out: Path, *, domain_id: int,
     from nav_msgs.msg import Path as PathMsg
     from std_msgs.msg import String
 
-    from rory_eval.simrun import LATCHED
+    from rory_eval.harness.simrun import LATCHED
 
     run = SimRun(world, out, domain_id=domain_id, driver='none', seed=seed, depth=False,
                  duration=duration or DURATIONS.get((world, goal), 60.0),

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from rory_eval.corpus_campaign import NODES, judge_run, run_node
-from rory_eval.scenario import Kill, ScenarioResult
+from rory_eval.harness.scenario import Kill, ScenarioResult
 
 pytestmark = pytest.mark.ros
 

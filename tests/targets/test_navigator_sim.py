@@ -25,9 +25,9 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import LaserScan
 
+from rory_eval.harness.scenario import scenario_env
+from rory_eval.harness.simrun import LATCHED
 from rory_eval.quality.navigator import NODE, run_goal
-from rory_eval.scenario import scenario_env
-from rory_eval.simrun import LATCHED
 
 pytestmark = pytest.mark.ros
 

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from rory_eval.scenario import joining, scenario_env
+from rory_eval.harness.scenario import joining, scenario_env
 
 
 def test_settings_hold_inside_and_the_environment_is_restored_after(

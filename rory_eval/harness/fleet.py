@@ -13,7 +13,7 @@ robots publish byte-identical poses stamp for stamp. Robot 1's node is SIGKILLed
 * the safe-state topic is relative (``safe_stop``): robot 1's is held and released, robot 2's
   is never touched; neither supervisor hears the other's channel.
 
-    python -m rory_eval.fleet --runs 3          # prints robot 2's timing, run by run
+    python -m rory_eval.harness.fleet --runs 3          # prints robot 2's timing, run by run
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from typing import Any
 
 import yaml
 
-from rory_eval.simrun import LATCHED, REPO, SimRun, SimRunResult, store_events
+from rory_eval.harness.simrun import LATCHED, REPO, SimRun, SimRunResult, store_events
 
 ROBOTS = ('robot1', 'robot2')
 POSE = 'grid_slam/pose'
@@ -196,7 +196,7 @@ def robot2_timing(result: FleetResult, margin_ns: int = 1_000_000_000) -> Timing
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the fleet ``--runs`` times; print robot 2's outputs and timing against robot 1's."""
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.fleet', description=__doc__,
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.harness.fleet', description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--world', default='office_small')
     parser.add_argument('--runs', type=int, default=3)

@@ -42,11 +42,11 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from rory_eval.process_usage import TreeSampler, TreeUsage, peak_rss_mb, tree_cpu_ticks
-from rory_eval.process_usage import tree_pids as process_tree
-from rory_eval.scenario import joining, scenario_env
+from rory_eval.harness.process_usage import TreeSampler, TreeUsage, peak_rss_mb, tree_cpu_ticks
+from rory_eval.harness.process_usage import tree_pids as process_tree
+from rory_eval.harness.scenario import joining, scenario_env
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 _CLK_TCK = os.sysconf('SC_CLK_TCK')
 _SAMPLE_PERIOD = 1.0  # s between readings of each node's process tree (per role, for overhead)
 _RECORDERS = itertools.count(1)
@@ -344,7 +344,8 @@ class _Recorder:
         with joining(domain_id):
             rclpy.init(context=self.context, domain_id=domain_id,
                        signal_handler_options=SignalHandlerOptions.NO)
-            # Unique: runs side by side in one process (rory_eval.fleet) each have a recorder.
+            # Unique: runs side by side in one process (rory_eval.harness.fleet) each have a
+            # recorder.
             self.node = Node(f'simrun_recorder_{next(_RECORDERS)}', context=self.context)
         self._lock = threading.Lock()
         for rec in recordings:

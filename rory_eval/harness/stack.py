@@ -6,7 +6,7 @@ received once by the navigator (volatile, as from RViz), with no collision, howe
 are struck: one alone (the other keeps running, its process untouched) or several at the same
 moment (all recover; the stop is held from the first one's S1 until the last one's S4).
 
-    python -m rory_eval.stack --world real_room --strike 8:amcl --strike 16:amcl,navigator
+    python -m rory_eval.harness.stack --world real_room --strike 8:amcl --strike 16:amcl,navigator
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 
 import yaml
 
-from rory_eval.simrun import LATCHED, REPO, SimRun, store_events, wait_for_clock
+from rory_eval.harness.simrun import LATCHED, REPO, SimRun, store_events, wait_for_clock
 
 NODES = ('amcl', 'navigator')
 GOAL_XY = 0.25  # m, as the evaluation's judge (rory_eval/evaluation/judge.py)
@@ -203,7 +203,7 @@ def run_stack(world: str, out: Path, *, domain_id: int, strikes: Sequence[Strike
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the stack once and print what happened; exit 0 when the goal was reached."""
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.stack', description=__doc__,
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.harness.stack', description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--world', default='real_room')
     parser.add_argument('--strike', action='append', type=Strike.parse, default=[],

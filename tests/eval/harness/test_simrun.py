@@ -10,7 +10,7 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import OccupancyGrid
 from sensor_msgs.msg import LaserScan
 
-from rory_eval.simrun import LATCHED, SimRun, SimRunError
+from rory_eval.harness.simrun import LATCHED, SimRun, SimRunError
 
 pytestmark = pytest.mark.ros
 

@@ -11,7 +11,7 @@ from pathlib import Path
 PROGRAM = """
 import sys, time
 from pathlib import Path
-from rory_eval.simrun import exit_on_sigterm
+from rory_eval.harness.simrun import exit_on_sigterm
 exit_on_sigterm()
 marker = Path(sys.argv[1])
 try:

@@ -34,7 +34,7 @@ from std_msgs.msg import Bool, String
 from rory_runtime import protocol
 from rory_runtime.dds import fast_rediscovery_env
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / 'examples' / 'integrator'
 
 

@@ -1,4 +1,4 @@
-"""Per-role CPU and memory of a process tree (rory_eval/process_usage.py)."""
+"""Per-role CPU and memory of a process tree (rory_eval/harness/process_usage.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import sys
 import time
 from typing import Any
 
-from rory_eval.process_usage import (
+from rory_eval.harness.process_usage import (
     ProcessReading,
     TreeSampler,
     peak_rss_mb,

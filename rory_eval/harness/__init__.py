@@ -1,0 +1,12 @@
+"""What every measurement, campaign and demo here runs on: real processes, started and watched.
+
+* :mod:`.scenario` - the integrator scenario: ``examples/integrator`` under ``rory supervise``,
+  a publisher of 1..N, SIGKILLs at chosen moments, the node's history watched.
+* :mod:`.simrun` - one simulator run: ``rory sim``, the nodes, a recorder, ground truth.
+* :mod:`.process_usage` - CPU and memory of a process tree, per role, sampled during a run.
+* :mod:`.hosts` - several "hosts" on one machine as network namespaces.
+* :mod:`.stack` - AMCL and the navigator under one supervisor in the simulator, struck by
+  name (``python -m rory_eval.harness.stack``).
+* :mod:`.fleet` - two simulated robots on one DDS network, one supervisor each
+  (``python -m rory_eval.harness.fleet``).
+"""

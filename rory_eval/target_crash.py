@@ -25,7 +25,7 @@ from typing import Any, Protocol
 import yaml
 
 from rory_eval.evaluation.plan import TARGETS as EVAL_TARGETS
-from rory_eval.evaluation.runner import Killer
+from rory_eval.harness.killer import Killer
 from rory_eval.harness.simrun import REPO, SimRun, exit_on_sigterm, store_events
 
 

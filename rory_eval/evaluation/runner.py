@@ -22,11 +22,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import signal
 import subprocess
 import sys
-import threading
 import time
 import traceback
 from collections.abc import Sequence
@@ -38,17 +35,10 @@ import numpy as np
 import yaml
 
 from rory_eval.evaluation.plan import BARE, TARGETS, Kind, RunSpec, TargetSpec
-from rory_eval.harness.simrun import (
-    LATCHED,
-    REPO,
-    SimRun,
-    SimRunResult,
-    store_events,
-    wait_for_clock,
-)
+from rory_eval.harness.killer import Killer
+from rory_eval.harness.simrun import LATCHED, REPO, SimRun, SimRunResult, store_events
 
 RECORD = 'record.json'
-KILL_TIMEOUT = 120.0  # s to wait for the clock before giving up on the kill
 
 
 @dataclass
@@ -280,40 +270,6 @@ def _keep(result: SimRunResult, record: RunRecord, target: TargetSpec, pose_topi
         cloud = result.last('/depth_mapper/cloud')
         points = np.frombuffer(bytes(cloud.data), dtype=np.float32).reshape(-1, 3)
         np.save(out / 'final_model.npy', points)
-
-
-class Killer(threading.Thread):
-    """SIGKILLs the supervised node ``crash_at`` seconds after the simulator's clock starts."""
-
-    def __init__(self, sim_log: Path, world: str, store: Path, crash_at: float) -> None:
-        super().__init__(daemon=True, name='killer')
-        self.sim_log, self.world, self.store, self.crash_at = sim_log, world, store, crash_at
-        self.killed_at: float | None = None
-        self.error = ''
-        self._finish = threading.Event()
-
-    def run(self) -> None:
-        if not wait_for_clock(self.sim_log, self.world, self._finish, KILL_TIMEOUT):
-            self.error = 'the clock never started'
-            return
-        clock_start = time.monotonic()
-        if self._finish.wait(self.crash_at):
-            self.error = 'the run ended before the crash time'
-            return
-        spawns = [e for e in store_events(self.store) if e.get('kind') == 'spawn']
-        if not spawns:
-            self.error = 'the supervisor never started the node'
-            return
-        try:
-            os.kill(int(spawns[-1]['pid']), signal.SIGKILL)
-        except ProcessLookupError:
-            self.error = f'node pid {spawns[-1]["pid"]} was already gone'
-            return
-        self.killed_at = time.monotonic() - clock_start
-
-    def stop(self) -> None:
-        self._finish.set()
-        self.join(timeout=2.0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -113,7 +113,7 @@ def run_fleet(world: str, out: Path, *, domain_id: int, kill_at: float = 6.0,
     from rclpy.serialization import serialize_message
     from std_msgs.msg import Bool
 
-    from rory_eval.evaluation.runner import Killer
+    from rory_eval.harness.killer import Killer
 
     out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)

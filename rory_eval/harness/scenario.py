@@ -428,7 +428,7 @@ def run(
                     # Settled: no news from the node for a while since it last became RUNNING
                     # (a recovered node publishes its state on its 1 Hz timer). Until this
                     # observer has heard the current process at all, wait longer: a cold
-                    # restart can take seconds to be discovered (rory_eval/discovery.py), and
+                    # restart can take seconds to be discovered (rory_eval/bench/discovery.py), and
                     # judging the state an earlier process published would report its losses,
                     # not the node's (a campaign run judged 102 numbers lost that the node had).
                     # Once heard, it must still be heard: the programs publish their state

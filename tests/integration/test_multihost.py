@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from rory_eval.bench.multihost_bench import HostRun, Outage, run_on_hosts
 from rory_eval.harness.hosts import Hosts, netns_available
-from rory_eval.multihost_bench import HostRun, Outage, run_on_hosts
 
 pytestmark = pytest.mark.ros
 

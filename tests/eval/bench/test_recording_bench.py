@@ -9,7 +9,7 @@ import pytest
 from rosbags.interfaces import QosReliability
 from rosbags.rosbag2 import Reader
 
-from rory_eval.recording_bench import (
+from rory_eval.bench.recording_bench import (
     STREAMS,
     RunResult,
     Usage,

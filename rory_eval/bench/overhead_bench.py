@@ -1,6 +1,6 @@
 """Where RORY's overhead goes: its mechanisms switched on one at a time, beside the bare node.
 
-    python -m rory_eval.overhead_bench [--targets amcl grid_slam] [--world real_room]
+    python -m rory_eval.bench.overhead_bench [--targets amcl grid_slam] [--world real_room]
                                        [--runs 3] [--out bench-out/overhead]
 
 Each configuration runs the target's evaluation workload (the same simulator seed, route and
@@ -132,7 +132,7 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run, print and write the table."""
     exit_on_sigterm()
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.overhead_bench',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.overhead_bench',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('--targets', nargs='+', default=['amcl', 'grid_slam'],
                         choices=sorted(TARGETS))

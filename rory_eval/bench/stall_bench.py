@@ -1,6 +1,6 @@
 """Checkpoint stall: how long a checkpoint holds the node's executor, by size of state.
 
-    python -m rory_eval.stall_bench [--sizes 1 16] [--seconds 12] [--out stall-out]
+    python -m rory_eval.bench.stall_bench [--sizes 1 16] [--seconds 12] [--out stall-out]
 
 ``examples/big_state`` (a node whose state is a float32 grid of the given size in MB, changed
 by a 20 Hz timer) runs under ``rory supervise`` with a checkpoint every 0.5 s. The node's
@@ -23,7 +23,7 @@ from pathlib import Path
 
 from rory_eval.harness.scenario import Program, child_process, prepare, scenario_env
 
-EXAMPLE = Path(__file__).resolve().parent.parent / 'examples' / 'big_state'
+EXAMPLE = Path(__file__).resolve().parents[2] / 'examples' / 'big_state'
 
 
 def measure(megabytes: float, seconds: float, out: Path, domain: int) -> list[dict[str, float]]:

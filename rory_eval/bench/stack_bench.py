@@ -1,7 +1,7 @@
 """What a whole stack costs under RORY: the six targets under ONE supervisor against the same
 six run bare, side by side in the simulator; then crashes in that stack.
 
-    python -m rory_eval.stack_bench [--runs 3] [--world real_room] [--strike-runs 1]
+    python -m rory_eval.bench.stack_bench [--runs 3] [--world real_room] [--strike-runs 1]
 
 Each run starts the simulator (depth camera on, the navigator driving to the world's goal on
 AMCL's pose) and the six targets: grid_slam, graph_slam, depth_mapper, amcl, lama_local,
@@ -221,7 +221,8 @@ def strikes_table(records: Sequence[dict[str, Any]]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the pairs, then the strike runs; print the tables."""
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.stack_bench', description=__doc__,
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.stack_bench',
+                                     description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--runs', type=int, default=3, help='bare/rory pairs')
     parser.add_argument('--strike-runs', type=int, default=1)

@@ -1,6 +1,6 @@
 """``make bench``: recovery time per method, side by side, median of N runs.
 
-    python -m rory_eval.bench [--runs 10] [--kill-at 3.0] [--out bench-out]
+    python -m rory_eval.bench.recovery_bench [--runs 10] [--kill-at 3.0] [--out bench-out]
 
 Each run is the integrator scenario (300 numbers at 50 Hz, checkpoint every 2 s) SIGKILLed
 ``--kill-at`` seconds in; methods are interleaved run by run so that machine load affects them

@@ -1,6 +1,6 @@
 """What DDS discovery settings cost a robot at rest, and what they buy after a crash.
 
-    python -m rory_eval.dds_fleet_bench [--participants 20] [--seconds 20] [--restarts 8]
+    python -m rory_eval.bench.dds_fleet_bench [--participants 20] [--seconds 20] [--restarts 8]
 
 RORY's DDS profile (rory_runtime/dds/) announces every participant every 0.25 s with a 1 s
 lease, so that a SIGKILLed process is forgotten within 1 s. Every participant pays for every
@@ -38,7 +38,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from rory_eval.discovery import measure
+from rory_eval.bench.discovery import measure
 from rory_eval.harness.process_usage import read_process
 from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.dds import fast_rediscovery_env
@@ -105,7 +105,7 @@ def at_rest(extra: dict[str, str], participants: int, settle: float, seconds: fl
 def main(argv: Sequence[str] | None = None) -> int:
     """Measure every setting; print the table."""
     exit_on_sigterm()
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.dds_fleet_bench',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.dds_fleet_bench',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--participants', type=int, default=20)

@@ -1,6 +1,6 @@
 """Does recording keep up with a robot's sensors? The bare node against the node under RORY.
 
-    python -m rory_eval.recording_bench [--seconds 30] [--out recording-out] [--domain 60]
+    python -m rory_eval.bench.recording_bench [--seconds 30] [--out recording-out] [--domain 60]
 
 The load (``examples/sensor_sink/sensor_load.py``): 10 Hz LaserScan (720 beams), 50 Hz
 Odometry, 5 Hz PointCloud2 (10 000 points, 160 kB) and a 1 Hz 2000 x 2000 OccupancyGrid
@@ -46,7 +46,7 @@ from rory_eval.harness.process_usage import peak_rss_mb, tree_cpu_ticks, tree_pi
 from rory_eval.harness.scenario import scenario_env
 from rory_runtime.log import SegmentStore
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / 'examples' / 'sensor_sink'
 NODE_ID = 'sensor_sink'
 

@@ -1,6 +1,6 @@
 """How long until a restarted process is heard: DDS rediscovery after SIGKILL.
 
-    python -m rory_eval.discovery [--runs 10] [--peers 4]
+    python -m rory_eval.bench.discovery [--runs 10] [--peers 4]
 
 A long-lived listener (like the supervisor) holds a reliable transient-local subscription;
 ``--peers`` idle participants stand in for the rest of the robot. A child process starts,

@@ -1,6 +1,6 @@
 """What RORY's extra processes cost in memory at the least, and what forking would save.
 
-    python -m rory_eval.fork_memory_bench [--target amcl] [--runs 3] [--settle 8]
+    python -m rory_eval.bench.fork_memory_bench [--target amcl] [--runs 3] [--settle 8]
 
 RORY runs three Python rclpy processes where the bare robot runs one: the node, the supervisor
 and the warm standby. Each is measured here doing nothing but exist: it has imported what its
@@ -42,7 +42,7 @@ from rory_eval.harness.process_usage import read_process, tree_pids
 
 LAYOUTS = ('bare', 'separate', 'zygote', 'parent')
 ROLES = ('node', 'supervisor', 'standby')
-_TARGETS = Path(__file__).resolve().parents[1] / 'targets'
+_TARGETS = Path(__file__).resolve().parents[2] / 'targets'
 
 
 def _imports(role: str, target: str) -> list[str]:
@@ -132,7 +132,7 @@ def run_layout(layout: str, target: str, inputs: Sequence[str], settle: float,
     """Start a layout, let it settle, and return its processes' PSS (MB)."""
     def start(role: str) -> subprocess.Popen[bytes]:
         return subprocess.Popen(
-            [sys.executable, '-m', 'rory_eval.fork_memory_bench', '--child', layout,
+            [sys.executable, '-m', 'rory_eval.bench.fork_memory_bench', '--child', layout,
              '--role', role, '--target', target, '--inputs', *inputs], env=env)
     if layout == 'bare':
         procs = [start('bare')]
@@ -152,7 +152,7 @@ def run_layout(layout: str, target: str, inputs: Sequence[str], settle: float,
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run every layout ``--runs`` times, interleaved; print medians."""
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.fork_memory_bench',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.fork_memory_bench',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--target', default='amcl')

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.fork_memory_bench import main
+from rory_eval.bench.fork_memory_bench import main
 
 pytestmark = pytest.mark.ros
 

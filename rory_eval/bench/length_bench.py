@@ -1,6 +1,6 @@
 """Recovery time against run length: RORY stays flat, replay alone grows with the run.
 
-    python -m rory_eval.length_bench [--crash-at 9 60 300] [--rate 10] [--out length-out]
+    python -m rory_eval.bench.length_bench [--crash-at 9 60 300] [--rate 10] [--out length-out]
 
 The integrator scenario (``rory_eval/harness/scenario.py``: numbers 1..N at ``--rate`` Hz, a SIGKILL
 ``T`` seconds after the first one, a checkpoint every 2 s) for each crash time T, once under

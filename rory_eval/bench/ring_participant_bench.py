@@ -9,7 +9,7 @@ the same domain stand in for the rest of the robot, which every participant must
 itself to and track. The two configurations alternate run by run; the table gives medians of
 the process's CPU (% of one core over ``--seconds``), its PSS and its thread count.
 
-    python -m rory_eval.ring_participant_bench --runs 5
+    python -m rory_eval.bench.ring_participant_bench --runs 5
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def _peers(count: int, env: dict[str, str]) -> subprocess.Popen[bytes] | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run both configurations ``--runs`` times, interleaved; print the medians."""
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.ring_participant_bench',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.ring_participant_bench',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--runs', type=int, default=5)
@@ -100,8 +100,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for run in range(args.runs):
             for config in CONFIGS:
                 out = subprocess.run(
-                    [sys.executable, '-m', 'rory_eval.ring_participant_bench', '--child', config,
-                     '--topics', str(args.topics), '--seconds', str(args.seconds)],
+                    [sys.executable, '-m', 'rory_eval.bench.ring_participant_bench', '--child',
+                     config, '--topics', str(args.topics), '--seconds', str(args.seconds)],
                     env=dds_env, capture_output=True, text=True, check=True,
                     timeout=args.seconds + 60)
                 results[config].append(json.loads(out.stdout.strip().splitlines()[-1]))

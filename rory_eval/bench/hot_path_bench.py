@@ -1,6 +1,6 @@
 """What the node runtime adds per event, measured in-process: microseconds per message or tick.
 
-    python -m rory_eval.hot_path_bench [--events 20000] [--repeats 5]
+    python -m rory_eval.bench.hot_path_bench [--events 20000] [--repeats 5]
 
 ``message_cost_bench`` measures a whole node under ``rory supervise``, executor and DDS
 included, and on a shared VM its figures move by tens of microseconds from run to run. This
@@ -144,7 +144,7 @@ def _loop(config: str, kind: str, events: int, store: Path) -> float:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the bench; print the table."""
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.hot_path_bench',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.hot_path_bench',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--events', type=int, default=20000)

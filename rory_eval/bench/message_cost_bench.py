@@ -1,7 +1,7 @@
 """What RORY adds to taking one message, or one timer tick: microseconds of the node's CPU.
 
-    python -m rory_eval.message_cost_bench [--runs 3] [--rate 1000] [--seconds 10]
-    python -m rory_eval.message_cost_bench --input tick [--runs 3] [--seconds 10]
+    python -m rory_eval.bench.message_cost_bench [--runs 3] [--rate 1000] [--seconds 10]
+    python -m rory_eval.bench.message_cost_bench --input tick [--runs 3] [--seconds 10]
 
 A node that does almost nothing per message (``examples/scan_sink``: a count and a stamp)
 takes LaserScans (360 beams with intensities) at ``--rate`` Hz for ``--seconds`` s, bare and
@@ -35,12 +35,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from rory_eval.bench.light_node_bench import alternating, plain_env
 from rory_eval.harness.process_usage import read_process
 from rory_eval.harness.scenario import Program, prepare, stop_process
 from rory_eval.harness.simrun import exit_on_sigterm
-from rory_eval.light_node_bench import alternating, plain_env
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 SINK = REPO / 'examples' / 'scan_sink'
 TICKS = REPO / 'examples' / 'tick_sink'
 PROGRAMS = {
@@ -169,7 +169,7 @@ def run_once(config: str, workdir: Path, domain: int, rate: float,
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the bench; print the table."""
     exit_on_sigterm()
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.message_cost_bench',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.message_cost_bench',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--runs', type=int, default=3)

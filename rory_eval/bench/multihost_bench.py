@@ -1,6 +1,6 @@
 """Recovery across hosts: the integrator scenario with its publisher on another host.
 
-    python -m rory_eval.multihost_bench [--runs 5] [--kill-at 2.5] [--out bench-out/multihost]
+    python -m rory_eval.bench.multihost_bench [--runs 5] [--kill-at 2.5] [--out bench-out/multihost]
 
 Hosts are network namespaces joined by a veth pair (:mod:`rory_eval.harness.hosts`, needs root). The
 integrator, its supervisor and an observer run on host ``a``; the count publisher runs on host
@@ -198,7 +198,7 @@ def run_on_hosts(
     rx0, tx0 = hosts.interface_packets(node_host)  # the interface outlives a run
     packets = (0, 0)
     observer = hosts.popen(
-        node_host, [python, '-m', 'rory_eval.multihost_bench', 'observe', 'observed.jsonl'],
+        node_host, [python, '-m', 'rory_eval.bench.multihost_bench', 'observe', 'observed.jsonl'],
         env=env, cwd=workdir, log=workdir / 'observer.log',
     )
     sup = publisher = None

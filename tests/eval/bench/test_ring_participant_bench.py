@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from rory_eval.ring_participant_bench import main
+from rory_eval.bench.ring_participant_bench import main
 
 pytestmark = pytest.mark.ros
 

@@ -1,6 +1,6 @@
 """What RORY costs on one light node: the example integrator at 50 Hz, bare against rory.
 
-    python -m rory_eval.light_node_bench [--runs 5] [--seconds 30] [--rate 50]
+    python -m rory_eval.bench.light_node_bench [--runs 5] [--seconds 30] [--rate 50]
 
 A user's light node is where RORY's fixed costs weigh most: a supervisor, a zygote and a standby
 beside a node that takes a few percent of a core. Each run starts the integrator
@@ -155,7 +155,7 @@ def alternating(configs: Sequence[str], runs: int) -> Iterator[tuple[int, str]]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the bench; print the table."""
     exit_on_sigterm()
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.light_node_bench',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.light_node_bench',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--runs', type=int, default=5)

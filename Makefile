@@ -68,10 +68,10 @@ discovery: $(STAMP)
 # fast replay, SIGKILLed at random times, against its no-crash run (~10 min); then on five real
 # targets x three worlds in the simulator (~30 min).
 faults: $(STAMP)
-	$(PY) -m rory_eval.fault_campaign --runs 8
-	$(PY) -m rory_eval.storm_campaign --runs 40
-	$(PY) -m rory_eval.corpus_campaign --kills 3
-	$(PY) -m rory_eval.target_faults
+	$(PY) -m rory_eval.faults.fault_campaign --runs 8
+	$(PY) -m rory_eval.faults.storm_campaign --runs 40
+	$(PY) -m rory_eval.faults.corpus_campaign --kills 3
+	$(PY) -m rory_eval.faults.target_faults
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache demo-out eval-out

@@ -67,7 +67,7 @@ class Kill:
     """When to strike the node: exactly one of the time fields is set; ``how`` is the fault.
 
     ``how``: a signal name (SIGKILL, SIGSEGV, SIGABRT) sent to the node, or ``raise`` /
-    ``hang``, which leave a flag file that a fault-injectable program (rory_eval/flaky) takes
+    ``hang``, which leave a flag file that a fault-injectable program (rory_eval/faults/flaky) takes
     before its next message and then raises, or blocks forever.
     """
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.target_crash import TARGETS, compare, run_under_rory
+from rory_eval.faults.target_crash import TARGETS, compare, run_under_rory
 
 pytestmark = pytest.mark.ros
 

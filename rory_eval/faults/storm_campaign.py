@@ -3,7 +3,7 @@
 A robot's crash loops are this: a fault fires, RORY recovers the node, and the same fault fires
 again a moment later, while the replacement replays, just after its release, before its first
 checkpoint, or between two checkpoints. Each run here is the integrator scenario (real
-supervisor, real node, real publisher of 1..N at 50 Hz, ``rory_eval/flaky``) struck by a
+supervisor, real node, real publisher of 1..N at 50 Hz, ``rory_eval/faults/flaky``) struck by a
 *schedule*: 1-5 strikes, each a gap after the previous one (0.05 s to two checkpoint
 intervals), each a fault (SIGKILL, SIGSEGV, an uncaught exception, a hang the heartbeat
 finds), with paced or fast replay, from a warm standby or cold. The campaign draws each
@@ -16,8 +16,8 @@ numbers are counted one by one.
 A schedule that goes wrong is written to ``tests/integration/storm_schedules.json``, where
 ``tests/integration/test_storm_campaign.py`` replays every one of them as a regression case.
 
-    python -m rory_eval.storm_campaign --runs 40          # the campaign (~12 min here)
-    python -m rory_eval.storm_campaign --issue-schedule 20  # issue 21's schedule, 20 x 4 ways
+    python -m rory_eval.faults.storm_campaign --runs 40            # the campaign (~12 min here)
+    python -m rory_eval.faults.storm_campaign --issue-schedule 20  # issue 21's, 20 x 4 ways
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from typing import Any
 
 from hypothesis import strategies as st
 
-from rory_eval.fault_campaign import FLAKY
+from rory_eval.faults.fault_campaign import FLAKY
 from rory_eval.harness.scenario import Kill, ScenarioResult, run
 from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.protocol import seq_ranges
@@ -44,7 +44,7 @@ from rory_runtime.protocol import seq_ranges
 FAULTS = ('SIGKILL', 'SIGSEGV', 'raise', 'hang')
 RATE = 50.0
 INTERVAL = 2.0  # checkpoint interval of the runs (s): the default users run
-REGRESSIONS = Path(__file__).resolve().parent.parent / 'tests' / 'integration' / \
+REGRESSIONS = Path(__file__).resolve().parents[2] / 'tests' / 'integration' / \
     'storm_schedules.json'
 
 
@@ -274,7 +274,7 @@ def campaign(runs: int, seed: int) -> list[Schedule]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the campaign; exit 1 unless every run recovered exactly."""
     exit_on_sigterm()
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.storm_campaign',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.faults.storm_campaign',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--runs', type=int, default=40, help='schedules to draw')

@@ -17,7 +17,7 @@ A crashed run is judged against its reference (:data:`NODES`, ``judge``):
   what replay must keep: the state is what the node's own recorded readings imply, no clock
   reading or tick lags by the time since the checkpoint (what a replay on live time shows).
 
-    python -m rory_eval.corpus_campaign --kills 3       # ~10 min here
+    python -m rory_eval.faults.corpus_campaign --kills 3       # ~10 min here
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ from rory_eval.harness.scenario import (
 )
 from rory_eval.harness.simrun import exit_on_sigterm
 
-CORPUS = Path(__file__).resolve().parent.parent / 'tests' / 'integration' / 'corpus'
+CORPUS = Path(__file__).resolve().parents[2] / 'tests' / 'integration' / 'corpus'
 COUNT = 200  # 4 s at 50 Hz
 # What a message's clock reading or a tick may lag in a recovered run beyond the recovery's
 # own time (crash detected -> released): a tick period and the handover. A replay on live time
@@ -202,7 +202,7 @@ def kill_times(seed: int, kills: int) -> Iterator[float]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the campaign; exit 1 unless every crashed run was judged exact."""
     exit_on_sigterm()
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.corpus_campaign',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.faults.corpus_campaign',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--kills', type=int, default=3, help='kill times per node')

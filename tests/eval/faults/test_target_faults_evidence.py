@@ -9,8 +9,8 @@ import pytest
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.serialization import serialize_message
 
-from rory_eval import target_faults
-from rory_eval.target_crash import TARGETS
+from rory_eval.faults import target_faults
+from rory_eval.faults.target_crash import TARGETS
 
 
 def _pose(stamp_ns: int, x: float) -> bytes:
@@ -61,7 +61,7 @@ def test_bad_case_options_are_refused_by_name(argv: list[str], said: str,
 
 
 def test_the_clock_waits_for_each_targets_own_inputs() -> None:
-    from rory_eval.target_crash import sensor_readers
+    from rory_eval.faults.target_crash import sensor_readers
 
     assert sensor_readers(TARGETS['depth_mapper']) == {'/camera/depth/points': 2, '/odom': 2}
     assert sensor_readers(TARGETS['grid_slam']) == {'/scan': 2}

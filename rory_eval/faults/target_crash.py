@@ -7,7 +7,7 @@ release, *byte for byte* the message it publishes in a run without a crash. This
 target under ``rory supervise`` twice - without a crash, then SIGKILLed at ``--kill-at`` sim
 seconds - records its pose output, and compares the serialized messages stamp by stamp.
 
-    python -m rory_eval.target_crash --target grid_slam --world office_small --kill-at 20
+    python -m rory_eval.faults.target_crash --target grid_slam --world office_small --kill-at 20
 """
 
 from __future__ import annotations
@@ -237,7 +237,7 @@ def _outages(stamps: list[int], recoveries: int) -> list[tuple[int, int]]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run both, print the comparison; exit 0 when exact."""
     exit_on_sigterm()
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.target_crash',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.faults.target_crash',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--target', choices=sorted(TARGETS), required=True)

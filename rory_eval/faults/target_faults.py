@@ -4,7 +4,7 @@ For each target x world the target runs under RORY twice or more: once without a
 reference) and once per fault kind at a random sim time - SIGKILL, SIGSEGV, an uncaught
 exception in a callback, a callback that hangs (found by the heartbeat) - and once more with a
 second strike of a random kind soon after the replacement is spawned, i.e. during its recovery.
-The targets run unchanged under ``python -m rory_eval.flaky.inject`` (which wraps their
+The targets run unchanged under ``python -m rory_eval.faults.flaky.inject`` (which wraps their
 subscription callbacks behind one-shot flag files) with the simulator's internal driver, so a
 run's inputs are identical to the reference's and a target's outputs are a deterministic
 function of them: a recovery that loses nothing and applies nothing twice leaves every pose the
@@ -16,8 +16,8 @@ recoveries, outputs missing after the release (a lost message shows as a later d
 gap), outputs that differ (a message lost or applied twice changes every later pose of a SLAM
 or localizer), input messages reported lost (``input_gap``), give-ups.
 
-    python -m rory_eval.target_faults                     # 5 targets x 3 worlds (~40 min)
-    python -m rory_eval.target_faults --targets grid_slam --worlds office_small
+    python -m rory_eval.faults.target_faults                     # 5 targets x 3 worlds (~40 min)
+    python -m rory_eval.faults.target_faults --targets grid_slam --worlds office_small
 """
 
 from __future__ import annotations
@@ -37,9 +37,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rory_eval.flaky.inject import HANG_FLAG, RAISE_FLAG
-from rory_eval.harness.simrun import REPO, exit_on_sigterm, store_events, wait_for_clock
-from rory_eval.target_crash import (
+from rory_eval.faults.flaky.inject import HANG_FLAG, RAISE_FLAG
+from rory_eval.faults.target_crash import (
     TARGETS,
     Comparison,
     Target,
@@ -47,6 +46,7 @@ from rory_eval.target_crash import (
     instrument,
     run_supervised,
 )
+from rory_eval.harness.simrun import REPO, exit_on_sigterm, store_events, wait_for_clock
 
 FAULTS = ('SIGKILL', 'SIGSEGV', 'raise', 'hang')
 WORLDS = ('office_small', 'workshop', 'real_room')
@@ -185,7 +185,7 @@ def run_target(target: Target, world: str, out: Path, *, domain_id: int,
         shutil.rmtree(old, ignore_errors=True)
     for flag in (RAISE_FLAG, HANG_FLAG):
         (out / flag).unlink(missing_ok=True)
-    command = ['python', '-m', 'rory_eval.flaky.inject', str(inst / target.node_file),
+    command = ['python', '-m', 'rory_eval.faults.flaky.inject', str(inst / target.node_file),
                *target.argv(world)[2:]]
     settings = {'hang_timeout': HANG_TIMEOUT,
                 # rory_eval must be importable from the node's folder (out/).
@@ -314,7 +314,7 @@ def _positive_int(text: str) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the campaign; print the table; exit 0 when every run was correct."""
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.target_faults',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.faults.target_faults',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--targets', nargs='+', default=sorted(TARGETS), choices=sorted(TARGETS))

@@ -1,6 +1,6 @@
 """Run an unchanged robot program with injectable one-shot faults in its callbacks.
 
-    python -m rory_eval.flaky.inject PROGRAM.py [ARGS...]
+    python -m rory_eval.faults.flaky.inject PROGRAM.py [ARGS...]
 
 The program knows nothing of this (nor of RORY). Before it runs, rclpy's
 ``Node.create_subscription`` is wrapped so that every subscription callback the program
@@ -40,7 +40,7 @@ def faulty(callback: Callable[..., Any]) -> Callable[..., Any]:
     @functools.wraps(callback)
     def wrapper(*args: Any) -> Any:
         if _take(RAISE_FLAG):
-            msg = 'injected fault (rory_eval.flaky.inject) while applying a message'
+            msg = 'injected fault (rory_eval.faults.flaky.inject) while applying a message'
             raise RuntimeError(msg)
         if _take(HANG_FLAG):
             while True:  # a driver call that never returns
@@ -68,7 +68,7 @@ def install() -> None:
 def main() -> None:
     """Run PROGRAM as ``python PROGRAM ARGS`` would, with the faults installed."""
     if len(sys.argv) < 2:
-        sys.exit('usage: python -m rory_eval.flaky.inject PROGRAM.py [ARGS...]')
+        sys.exit('usage: python -m rory_eval.faults.flaky.inject PROGRAM.py [ARGS...]')
     install()
     program = sys.argv[1]
     sys.argv = sys.argv[1:]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from rory_eval.target_crash import compare
+from rory_eval.faults.target_crash import compare
 
 S = 100_000_000  # 10 Hz outputs
 

@@ -1,7 +1,7 @@
 """``make faults``: strike a node under RORY with every kind of fault, check nothing is lost.
 
 Each run is the integrator scenario (real supervisor, real node, real publisher of 1..N) with
-a fault-injectable integrator (``rory_eval/flaky``) struck at a random moment by one of:
+a fault-injectable integrator (``rory_eval/faults/flaky``) struck at a random moment by one of:
 SIGKILL, SIGSEGV, SIGABRT (signals from outside), an uncaught exception in its callback, or a
 callback that hangs (found by the heartbeat, then killed). Half the runs strike a second time
 soon after the replacement is spawned (while it starts, restores or replays, or just after its
@@ -9,8 +9,8 @@ release when the restart was quick). A run is correct when the node's final hist
 1..N: nothing lost, nothing applied twice. The table counts, per fault: runs, correct
 recoveries, numbers lost, numbers applied twice and give-ups (a node left FATAL).
 
-    python -m rory_eval.fault_campaign                # the full campaign (~10 min here)
-    python -m rory_eval.fault_campaign --short        # one run per fault, two double faults
+    python -m rory_eval.faults.fault_campaign                # the full campaign (~10 min here)
+    python -m rory_eval.faults.fault_campaign --short        # one run per fault, two double faults
 """
 
 from __future__ import annotations
@@ -143,7 +143,7 @@ def table(outcomes: Sequence[Outcome]) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the campaign; exit 1 unless every run recovered exactly."""
     exit_on_sigterm()
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.fault_campaign',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.faults.fault_campaign',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--short', action='store_true', help='the CI version (7 runs)')

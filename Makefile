@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m rory_eval.demo
+	$(PY) -m rory_eval.demos.mapping_demo
 
 lint: $(STAMP)
 	$(PY) -m ruff check .

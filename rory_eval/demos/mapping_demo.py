@@ -7,7 +7,7 @@ how each crash run's final map compares with the no-crash map and how long recov
 draws the three maps side by side (``demo-out/figures/grid_slam-office_small.png``).
 
 It is ``rory eval`` cut down to one cell; ``make eval`` runs every target, world and method.
-The integrator demo that used to be here is ``python -m rory_eval.integrator_demo``.
+The integrator demo that used to be here is ``python -m rory_eval.demos.integrator_demo``.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ TARGET, WORLD = 'grid_slam', 'office_small'
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the demo; exit 0 when it ran and RORY's map was judged correct."""
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.demo',
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.demos.mapping_demo',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('--out', type=Path, default=Path('demo-out'))
     parser.add_argument('--crash-at', type=float, default=9.0, help='sim seconds')

@@ -3,7 +3,8 @@
 The integrator (examples/integrator) sums 300 numbers published at 50 Hz; it is SIGKILLed 3 s
 in, between two checkpoints, and recovered by ``restart`` (ROS's respawn), ``checkpoint``,
 ``replay`` and ``rory``. The table shows which methods bring it back holding exactly the
-state it would have held without the crash. (``make demo`` is the simulator one, demo.py.)
+state it would have held without the crash. (``make demo`` is the simulator one,
+mapping_demo.py.)
 """
 
 from __future__ import annotations

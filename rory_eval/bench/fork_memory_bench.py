@@ -39,10 +39,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from rory_eval.harness.process_usage import read_process, tree_pids
+from rory_eval.targets import TARGETS
 
 LAYOUTS = ('bare', 'separate', 'zygote', 'parent')
 ROLES = ('node', 'supervisor', 'standby')
-_TARGETS = Path(__file__).resolve().parents[2] / 'targets'
 
 
 def _imports(role: str, target: str) -> list[str]:
@@ -59,7 +59,7 @@ def _import_all(names: Sequence[str]) -> None:
     for name in names:
         if name.startswith('@'):
             target = name[1:]
-            warm_imports(Program.parse([str(_TARGETS / target / f'{target}_node.py')]))
+            warm_imports(Program.parse([str(TARGETS[target].node)]))
         else:
             importlib.import_module(name)
 
@@ -155,7 +155,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.fork_memory_bench',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('--target', default='amcl')
+    parser.add_argument('--target', default='amcl', choices=sorted(TARGETS))
     parser.add_argument('--runs', type=int, default=3)
     parser.add_argument('--settle', type=float, default=8.0,
                         help='seconds before measuring (discovery and start-up done)')
@@ -165,8 +165,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--role', help=argparse.SUPPRESS)
     parser.add_argument('--inputs', nargs='*', default=['/scan', '/odom'], help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    if not (_TARGETS / args.target / f'{args.target}_node.py').is_file():
-        parser.error(f'--target {args.target!r}: no {args.target}_node.py under {_TARGETS}')
     if args.child:
         _child(args.child, args.role, args.target, args.inputs)
         return 0

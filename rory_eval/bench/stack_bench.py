@@ -25,14 +25,16 @@ import shutil
 import statistics
 import sys
 import time
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from rory_eval.harness.simrun import REPO, SimRun, exit_on_sigterm, store_events
+from rory_eval.harness.simrun import SimRun, exit_on_sigterm, store_events
 from rory_eval.harness.stack import GOAL_XY, Strike, Striker, instrument
+from rory_eval.targets import TARGETS
 
 STACK = ('grid_slam', 'graph_slam', 'depth_mapper', 'amcl', 'lama_local', 'navigator')
 DURATION = 40.0  # sim s: the navigator's 30 s to real_room's goal, and then some
@@ -42,20 +44,7 @@ STRIKE_GAP = 4.0  # sim s between strikes: the last recovery done, the standby r
 
 def bare_commands(world: str) -> dict[str, list[str]]:
     """Each target's command line as the evaluation runs it (sim time, the world's start)."""
-    from rory_eval.quality import depth_mapper, graph_slam, grid_slam
-    from rory_eval.quality.amcl import AMCL
-    from rory_eval.quality.lama_local import LAMA_LOCAL
-
-    return {
-        'grid_slam': grid_slam.node_argv(world),
-        'graph_slam': graph_slam.node_argv(world),
-        'depth_mapper': depth_mapper.node_argv(world),
-        'amcl': AMCL.argv(world),
-        'lama_local': LAMA_LOCAL.argv(world),
-        'navigator': [sys.executable, str(REPO / 'targets' / 'navigator' / 'navigator_node.py'),
-                      '--ros-args', '-p', 'use_sim_time:=true', '-r',
-                      '/map:=/ground_truth/map', '-p', 'goal_transient_local:=false'],
-    }
+    return {name: TARGETS[name].argv(world) for name in STACK}
 
 
 def stack_config(world: str, out: Path) -> Path:
@@ -81,7 +70,8 @@ def stack_config(world: str, out: Path) -> Path:
 
 def _readers(config: str) -> dict[str, int]:
     """Subscribers each input has once every process is up: the clock waits for them."""
-    per_node = {'/scan': 5, '/odom': 5, '/camera/depth/points': 1}
+    # One per node that reads it.
+    per_node = Counter(topic for name in STACK for topic in TARGETS[name].inputs)
     # Under rory the supervisor's ring reads each node's inputs too.
     return {t: n * (2 if config == 'rory' else 1) for t, n in per_node.items()}
 

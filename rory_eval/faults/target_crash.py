@@ -17,71 +17,16 @@ import itertools
 import json
 import subprocess
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 import yaml
 
-from rory_eval.evaluation.plan import TARGETS as EVAL_TARGETS
 from rory_eval.harness.killer import Killer
-from rory_eval.harness.simrun import REPO, SimRun, exit_on_sigterm, store_events
-
-
-@dataclass(frozen=True)
-class Target:
-    """How to run one target here."""
-
-    name: str
-    node_file: str  # inside targets/<name>/
-    pose_topic: str
-    pose_type: str  # 'PoseStamped' or 'PoseWithCovarianceStamped'
-    argv: Callable[[str], list[str]]  # world -> the node's command line (original script)
-    depth: bool = False  # needs the depth camera
-
-
-def _grid_slam(world: str) -> list[str]:
-    from rory_eval.quality.grid_slam import node_argv
-
-    return node_argv(world)
-
-
-def _graph_slam(world: str) -> list[str]:
-    from rory_eval.quality.graph_slam import node_argv
-
-    return node_argv(world)
-
-
-def _depth_mapper(world: str) -> list[str]:
-    from rory_eval.quality.depth_mapper import node_argv
-
-    return node_argv(world)
-
-
-def _amcl(world: str) -> list[str]:
-    from rory_eval.quality.amcl import AMCL
-
-    return AMCL.argv(world)
-
-
-def _lama(world: str) -> list[str]:
-    from rory_eval.quality.lama_local import LAMA_LOCAL
-
-    return LAMA_LOCAL.argv(world)
-
-
-TARGETS = {
-    'grid_slam': Target('grid_slam', 'grid_slam_node.py', '/grid_slam/pose', 'PoseStamped',
-                        _grid_slam),
-    'graph_slam': Target('graph_slam', 'graph_slam_node.py', '/graph_slam/pose', 'PoseStamped',
-                         _graph_slam),
-    'depth_mapper': Target('depth_mapper', 'depth_mapper_node.py', '/depth_mapper/pose',
-                           'PoseStamped', _depth_mapper, depth=True),
-    'amcl': Target('amcl', 'amcl_node.py', '/amcl_pose', 'PoseWithCovarianceStamped', _amcl),
-    'lama_local': Target('lama_local', 'lama_local_node.py', '/lama_local/pose',
-                         'PoseWithCovarianceStamped', _lama),
-}
+from rory_eval.harness.simrun import SimRun, exit_on_sigterm, store_events
+from rory_eval.targets import EXACT_TARGETS, POSE_STAMPED, Target
 
 
 def sensor_readers(target: Target) -> dict[str, int]:
@@ -90,7 +35,7 @@ def sensor_readers(target: Target) -> dict[str, int]:
     Waiting for a topic the target does not read (depth_mapper has no /scan) only times out:
     30 s per run, and the start then races the subscriptions.
     """
-    return {topic: 2 for topic in EVAL_TARGETS[target.name].inputs}
+    return {topic: 2 for topic in target.inputs}
 
 
 @dataclass
@@ -124,10 +69,9 @@ class Fault(Protocol):
 
 def instrument(target: Target, inst: Path) -> Path:
     """``rory instrument`` the target's folder into ``inst`` unless it is there already."""
-    source = REPO / 'targets' / target.name
     if not (inst / target.node_file).exists():
-        subprocess.run([sys.executable, '-m', 'rory_instrument', str(source), '--vars',
-                        str(source / 'keyvars.yaml'), '-o', str(inst)], check=True,
+        subprocess.run([sys.executable, '-m', 'rory_instrument', str(target.folder), '--vars',
+                        str(target.keyvars), '-o', str(inst)], check=True,
                        capture_output=True)
     return inst
 
@@ -169,7 +113,7 @@ def run_supervised(target: Target, world: str, out: Path, *, domain_id: int, dur
                  wait_for=sensor_readers(target), sim_args=['--start-delay', '1.0'])
     run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
                                 str(config)])
-    msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped
+    msg_type = PoseStamped if target.pose_type == POSE_STAMPED else PoseWithCovarianceStamped
     run.record(target.pose_topic, msg_type, qos=1000)
     if fault is not None:
         fault.start()
@@ -240,14 +184,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m rory_eval.faults.target_crash',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('--target', choices=sorted(TARGETS), required=True)
+    parser.add_argument('--target', choices=sorted(EXACT_TARGETS), required=True)
     parser.add_argument('--world', default='office_small')
     parser.add_argument('--duration', type=float, default=40.0, help='sim seconds')
     parser.add_argument('--kill-at', type=float, default=15.0, help='sim seconds')
     parser.add_argument('--domain', type=int, default=200)
     parser.add_argument('--out', default='target-crash-out')
     args = parser.parse_args(argv)
-    target = TARGETS[args.target]
+    target = EXACT_TARGETS[args.target]
     out = Path(args.out) / f'{args.target}-{args.world}'
     reference, _ = run_under_rory(target, args.world, out / 'reference', domain_id=args.domain,
                                   duration=args.duration, kill_at=None)

@@ -38,15 +38,9 @@ from pathlib import Path
 from typing import Any
 
 from rory_eval.faults.flaky.inject import HANG_FLAG, RAISE_FLAG
-from rory_eval.faults.target_crash import (
-    TARGETS,
-    Comparison,
-    Target,
-    compare,
-    instrument,
-    run_supervised,
-)
+from rory_eval.faults.target_crash import Comparison, compare, instrument, run_supervised
 from rory_eval.harness.simrun import REPO, exit_on_sigterm, store_events, wait_for_clock
+from rory_eval.targets import EXACT_TARGETS, POSE_STAMPED, Target
 
 FAULTS = ('SIGKILL', 'SIGSEGV', 'raise', 'hang')
 WORLDS = ('office_small', 'workshop', 'real_room')
@@ -202,7 +196,7 @@ def run_case(case: Case, reference: dict[int, bytes], out: Path, *, domain_id: i
              instrumented: Path | None = None) -> Outcome:
     """One faulted run, judged against the reference."""
     try:
-        crashed, events, striker = run_target(TARGETS[case.target], case.world, out,
+        crashed, events, striker = run_target(EXACT_TARGETS[case.target], case.world, out,
                                               domain_id=domain_id, case=case,
                                               instrumented=instrumented)
     except Exception as err:  # the run failed to run: reported in the table
@@ -210,7 +204,7 @@ def run_case(case: Case, reference: dict[int, bytes], out: Path, *, domain_id: i
     assert striker is not None
     comparison = compare(reference, crashed, events)
     if not comparison.exact:
-        write_differences(reference, crashed, TARGETS[case.target], out / 'differences.txt')
+        write_differences(reference, crashed, EXACT_TARGETS[case.target], out / 'differences.txt')
     return Outcome(
         case, comparison, strikes=striker.strikes,
         recoveries=sum(e['kind'] == 'recovered' for e in events),
@@ -244,7 +238,7 @@ def write_differences(reference: dict[int, bytes], crashed: dict[int, bytes], ta
     from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
     from rclpy.serialization import deserialize_message
 
-    msg_type = PoseStamped if target.pose_type == 'PoseStamped' else PoseWithCovarianceStamped
+    msg_type = PoseStamped if target.pose_type == POSE_STAMPED else PoseWithCovarianceStamped
     lines = ['stamp_s | field: reference -> crashed']
     for stamp in sorted(set(reference) | set(crashed)):
         ref, got = reference.get(stamp), crashed.get(stamp)
@@ -317,7 +311,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m rory_eval.faults.target_faults',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('--targets', nargs='+', default=sorted(TARGETS), choices=sorted(TARGETS))
+    parser.add_argument('--targets', nargs='+', default=sorted(EXACT_TARGETS),
+                        choices=sorted(EXACT_TARGETS))
     parser.add_argument('--worlds', nargs='+', default=list(WORLDS), choices=WORLDS)
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--domain', type=int, default=96)
@@ -364,7 +359,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         inst = args.out.resolve() / case.target / 'inst'
         if key not in references:
             references[key], _, _ = run_target(
-                TARGETS[case.target], case.world, args.out / case.target / case.world / 'ref',
+                EXACT_TARGETS[case.target], case.world, args.out / case.target / case.world / 'ref',
                 domain_id=args.domain, instrumented=inst)
         outcome = run_case(case, references[key],
                            args.out / case.target / case.world / f'case{k}',

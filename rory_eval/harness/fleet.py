@@ -31,13 +31,15 @@ from typing import Any
 
 import yaml
 
-from rory_eval.harness.simrun import LATCHED, REPO, SimRun, SimRunResult, store_events
+from rory_eval.harness.simrun import LATCHED, SimRun, SimRunResult, store_events
+from rory_eval.targets import TARGETS
 
+GRID_SLAM = TARGETS['grid_slam']
 ROBOTS = ('robot1', 'robot2')
-POSE = 'grid_slam/pose'
+POSE = GRID_SLAM.pose_topic.removeprefix('/')  # relative: inside each robot's namespace
 SAFE_TOPIC = 'safe_stop'
 # grid_slam's absolute topic names, moved into the robot's namespace by remaps.
-_MOVED = ('/scan', '/map', '/grid_slam/pose', '/clock')
+_MOVED = (*GRID_SLAM.inputs, GRID_SLAM.result_topic, GRID_SLAM.pose_topic, '/clock')
 
 
 @dataclass
@@ -75,17 +77,15 @@ class FleetResult:
 
 def fleet_config(out: Path, world: str) -> Path:
     """One config for every robot: grid_slam under RORY, a relative safe-state topic."""
-    from rory_eval.quality.grid_slam import node_argv
-
-    source = REPO / 'targets' / 'grid_slam'
     inst = out / 'inst'
     if not inst.exists():
-        subprocess.run([sys.executable, '-m', 'rory_instrument', str(source), '--vars',
-                        str(source / 'keyvars.yaml'), '-o', str(inst)], check=True,
+        subprocess.run([sys.executable, '-m', 'rory_instrument', str(GRID_SLAM.folder), '--vars',
+                        str(GRID_SLAM.keyvars), '-o', str(inst)], check=True,
                        capture_output=True)
     config = {
-        'nodes': [{'name': 'grid_slam',
-                   'command': ['python', str(inst / 'grid_slam_node.py'), *node_argv(world)[2:]],
+        'nodes': [{'name': GRID_SLAM.name,
+                   'command': ['python', str(inst / GRID_SLAM.node_file),
+                               *GRID_SLAM.argv(world)[2:]],
                    'method': 'rory', 'checkpoint_interval': 2.0, 'replay': 'fast'}],
         # Relative: /robot1/safe_stop for robot 1's supervisor. Not the simulator's e_stop,
         # which would stop robot 1 and make its later inputs differ from robot 2's.

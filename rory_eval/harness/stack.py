@@ -26,7 +26,8 @@ from typing import Any
 
 import yaml
 
-from rory_eval.harness.simrun import LATCHED, REPO, SimRun, store_events, wait_for_clock
+from rory_eval.harness.simrun import LATCHED, SimRun, store_events, wait_for_clock
+from rory_eval.targets import TARGETS
 
 NODES = ('amcl', 'navigator')
 GOAL_XY = 0.25  # m, as the evaluation's judge (rory_eval/evaluation/judge.py)
@@ -76,31 +77,28 @@ class StackResult:
 
 
 def instrument(name: str, into: Path) -> Path:
-    source = REPO / 'targets' / name
+    target = TARGETS[name]
     if not into.exists():
-        subprocess.run([sys.executable, '-m', 'rory_instrument', str(source), '--vars',
-                        str(source / 'keyvars.yaml'), '-o', str(into)], check=True,
+        subprocess.run([sys.executable, '-m', 'rory_instrument', str(target.folder), '--vars',
+                        str(target.keyvars), '-o', str(into)], check=True,
                        capture_output=True)
     return into
 
 
 def stack_config(world: str, out: Path, methods: dict[str, str]) -> Path:
     """The stack's ``rory supervise`` config: both nodes, /e_stop held while either recovers."""
-    from rory_eval.quality.amcl import AMCL
-
-    amcl = instrument('amcl', out / 'inst' / 'amcl')
-    navigator = instrument('navigator', out / 'inst' / 'navigator')
-    amcl_args = AMCL.argv(world)[2:]  # --ros-args, sim time, start pose, the map
+    nodes = []
+    for name in NODES:
+        target = TARGETS[name]
+        copy = instrument(name, out / 'inst' / name)
+        # The instrumented copy's script, then the original's arguments (--ros-args, sim time,
+        # the world's start pose, the map; the navigator's goal volatile, as from RViz).
+        nodes.append({'name': name,
+                      'command': ['python', str(copy / target.node_file),
+                                  *target.argv(world)[2:]],
+                      'method': methods.get(name, 'rory'), 'replay': 'fast'})
     config = {
-        'nodes': [
-            {'name': 'amcl', 'command': ['python', str(amcl / 'amcl_node.py'), *amcl_args],
-             'method': methods.get('amcl', 'rory'), 'replay': 'fast'},
-            {'name': 'navigator',
-             'command': ['python', str(navigator / 'navigator_node.py'), '--ros-args',
-                         '-p', 'use_sim_time:=true', '-r', '/map:=/ground_truth/map',
-                         '-p', 'goal_transient_local:=false'],
-             'method': methods.get('navigator', 'rory'), 'replay': 'fast'},
-        ],
+        'nodes': nodes,
         'safe_state': [{'topic': '/e_stop', 'type': 'std_msgs/msg/Bool',
                         'hold': {'data': True}, 'release': {'data': False}}],
         'store': str(out / 'store'),

@@ -10,7 +10,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.serialization import serialize_message
 
 from rory_eval.faults import target_faults
-from rory_eval.faults.target_crash import TARGETS
+from rory_eval.targets import TARGETS
 
 
 def _pose(stamp_ns: int, x: float) -> bytes:

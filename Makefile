@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m rory_eval.demo
+	$(PY) -m rory_eval.demos.mapping_demo
 
 lint: $(STAMP)
 	$(PY) -m ruff check .
@@ -42,17 +42,17 @@ eval: $(STAMP)
 # of RORY's three processes, started apart or forked from one; one light node's whole tree; what
 # RORY adds per LaserScan and per timer tick, whole node and in-process (~80 min, not in CI).
 bench: $(STAMP)
-	$(PY) -m rory_eval.bench --runs 10
-	$(PY) -m rory_eval.recording_bench --seconds 30
-	$(PY) -m rory_eval.stall_bench
-	$(PY) -m rory_eval.length_bench
-	$(PY) -m rory_eval.overhead_bench --runs 3
-	$(PY) -m rory_eval.fork_memory_bench --runs 3
-	$(PY) -m rory_eval.light_node_bench --runs 3 --seconds 30
-	$(PY) -m rory_eval.message_cost_bench --runs 5
-	$(PY) -m rory_eval.message_cost_bench --input tick --runs 5
-	$(PY) -m rory_eval.hot_path_bench
-	$(PY) -m rory_eval.stack_bench --runs 3 --strike-runs 1
+	$(PY) -m rory_eval.bench.recovery_bench --runs 10
+	$(PY) -m rory_eval.bench.recording_bench --seconds 30
+	$(PY) -m rory_eval.bench.stall_bench
+	$(PY) -m rory_eval.bench.length_bench
+	$(PY) -m rory_eval.bench.overhead_bench --runs 3
+	$(PY) -m rory_eval.bench.fork_memory_bench --runs 3
+	$(PY) -m rory_eval.bench.light_node_bench --runs 3 --seconds 30
+	$(PY) -m rory_eval.bench.message_cost_bench --runs 5
+	$(PY) -m rory_eval.bench.message_cost_bench --input tick --runs 5
+	$(PY) -m rory_eval.bench.hot_path_bench
+	$(PY) -m rory_eval.bench.stack_bench --runs 3 --strike-runs 1
 
 # What a robot installs: the runtime alone (no extras) in a clean venv, crashed and recovered.
 lean: $(STAMP)
@@ -60,7 +60,7 @@ lean: $(STAMP)
 
 # How fast a SIGKILLed and restarted process is heard, per DDS setting.
 discovery: $(STAMP)
-	$(PY) -m rory_eval.discovery --runs 12
+	$(PY) -m rory_eval.bench.discovery --runs 12
 
 # Every fault kind at random moments, some twice: on the integrator (prints runs, correct, lost,
 # twice; ~4 min); crash storms, 1-5 strikes in a row at drawn gaps, on the integrator (~12 min;
@@ -68,10 +68,10 @@ discovery: $(STAMP)
 # fast replay, SIGKILLed at random times, against its no-crash run (~10 min); then on five real
 # targets x three worlds in the simulator (~30 min).
 faults: $(STAMP)
-	$(PY) -m rory_eval.fault_campaign --runs 8
-	$(PY) -m rory_eval.storm_campaign --runs 40
-	$(PY) -m rory_eval.corpus_campaign --kills 3
-	$(PY) -m rory_eval.target_faults
+	$(PY) -m rory_eval.faults.fault_campaign --runs 8
+	$(PY) -m rory_eval.faults.storm_campaign --runs 40
+	$(PY) -m rory_eval.faults.corpus_campaign --kills 3
+	$(PY) -m rory_eval.faults.target_faults
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache demo-out eval-out

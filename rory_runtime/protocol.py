@@ -10,7 +10,8 @@ network, e.g. one per robot under ``-r __ns:=/robot1``, never share a topic):
 
 ``/rory/<node>/status``  node -> supervisor, ``std_msgs/msg/String`` holding one JSON object.
     Reliable and transient-local, so a status published before the supervisor's reader matched
-    is still delivered (a restarted process is discovered late: `python -m rory_eval.discovery`).
+    is still delivered (a restarted process is discovered late:
+    `python -m rory_eval.bench.discovery`).
 ``/rory/<node>/replay``  supervisor -> node, ``std_msgs/msg/UInt8MultiArray`` carrying an
     envelope. This is the node's *shadow topic*: recorded messages of every input topic travel
     on it, multiplexed, so that the node receives them in exactly the recorded order (DDS keeps

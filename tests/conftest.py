@@ -43,7 +43,7 @@ def more_ros_domains(worker_id: str) -> Callable[[], int]:
 # `make test` (--dist loadgroup) they run one after another on one worker while the other
 # worker takes the rest, one test at a time.
 SIMULATOR_TESTS = frozenset({
-    'eval/test_simrun.py',
+    'eval/harness/test_simrun.py',
     'integration/test_eval_quick.py',
     'integration/test_fleet.py',
     'integration/test_stack.py',

@@ -1,7 +1,7 @@
 """Scan sink: counts the laser scans it takes. The lightest node that has a state: what it
 costs to take one message is what is left of it.
 
-An ordinary rclpy node that knows nothing of RORY (``rory_eval/message_cost_bench.py`` runs it
+An ordinary rclpy node that knows nothing of RORY (``rory_eval/bench/message_cost_bench.py`` runs it
 bare and under RORY).
 """
 

@@ -1,7 +1,7 @@
 """Tick sink: a timer at 500 Hz that reads the node's clock and counts. The lightest node that
 works in a timer: what it costs to take one tick is what is left of it.
 
-An ordinary rclpy node that knows nothing of RORY (``rory_eval/message_cost_bench.py --input
+An ordinary rclpy node that knows nothing of RORY (``rory_eval/bench/message_cost_bench.py --input
 tick`` runs it bare and under RORY, where each tick and its clock reading are logged).
 """
 

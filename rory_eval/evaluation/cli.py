@@ -31,13 +31,13 @@ from rory_eval.evaluation import judge as judge_module
 from rory_eval.evaluation.plan import (
     CRASH_AT,
     METHODS,
-    TARGETS,
     WORLDS,
     Plan,
     RunSpec,
     build_plan,
 )
 from rory_eval.evaluation.runner import RECORD, RunRecord, instrument
+from rory_eval.targets import TARGETS
 
 QUICK_TARGET = 'grid_slam'
 QUICK_WORLD = 'office_small'

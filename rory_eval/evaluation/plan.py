@@ -1,5 +1,7 @@
 """What the evaluation runs: targets, worlds, methods, repetitions, crash times.
 
+The targets themselves (folder, command line, topics, kind) are rory_eval/targets.py's.
+
 A *cell* is one target in one world. For each cell and repetition the evaluation makes a
 ``bare`` run (the original node, no RORY: the no-crash reference and Table II's baseline) and one
 crash run per method. In the ``overhead_worlds`` it also makes a ``rory`` run without a crash, the
@@ -18,11 +20,12 @@ How each kind of target runs, as in the paper's section IV-B:
 
 from __future__ import annotations
 
-import enum
 import random
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
+
+from rory_eval.targets import TARGETS, Kind, Target
 
 METHODS = ('restart', 'checkpoint', 'replay', 'rory')
 WORLDS = ('office_small', 'workshop', 'real_room')
@@ -33,57 +36,6 @@ MAPPING_SECONDS = 30.0  # sim s of route for mapping and the 3D model
 # Navigation: time to the world's default goal at ~0.4 m/s, start-up and a margin to settle
 # (rory_eval/quality/navigator.py measured these).
 NAVIGATION_SECONDS = {'office_small': 55.0, 'workshop': 50.0, 'real_room': 30.0}
-
-
-class Kind(enum.StrEnum):
-    """What a target produces, and so how it is judged."""
-
-    MAP = 'map'  # nav_msgs/OccupancyGrid on /map
-    MODEL = 'model'  # sensor_msgs/PointCloud2 3D model
-    NAVIGATION = 'navigation'  # drives the robot to a goal
-    LOCALIZATION = 'localization'  # a pose the navigator drives on
-
-
-@dataclass(frozen=True)
-class TargetSpec:
-    """One target as the evaluation runs it.
-
-    Attributes:
-        name: the folder under ``targets/``.
-        kind: how it runs and is judged.
-        node_file: its main script, inside the folder.
-        pose_topic: its pose output (the navigator's is its plan's status instead).
-        paper: the program of the paper it stands in for.
-        depth: needs the depth camera.
-        inputs: the topics whose readers the clock waits for (one reader per process that
-            subscribes: the node, and RORY's ring for the methods that log).
-    """
-
-    name: str
-    kind: Kind
-    node_file: str
-    pose_topic: str
-    paper: str
-    depth: bool = False
-    inputs: tuple[str, ...] = ('/scan',)
-
-
-TARGETS: dict[str, TargetSpec] = {
-    t.name: t for t in (
-        TargetSpec('grid_slam', Kind.MAP, 'grid_slam_node.py', '/grid_slam/pose',
-                   'hector_mapping'),
-        TargetSpec('graph_slam', Kind.MAP, 'graph_slam_node.py', '/graph_slam/pose',
-                   'RTAB-Map', inputs=('/scan', '/odom')),
-        TargetSpec('depth_mapper', Kind.MODEL, 'depth_mapper_node.py', '/depth_mapper/pose',
-                   'ORB_SLAM2', depth=True, inputs=('/camera/depth/points', '/odom')),
-        TargetSpec('navigator', Kind.NAVIGATION, 'navigator_node.py', '/navigator/status',
-                   'move_base', inputs=('/scan', '/odom')),
-        TargetSpec('amcl', Kind.LOCALIZATION, 'amcl_node.py', '/amcl_pose', 'AMCL',
-                   inputs=('/scan', '/odom')),
-        TargetSpec('lama_local', Kind.LOCALIZATION, 'lama_local_node.py', '/lama_local/pose',
-                   'LaMa_local', inputs=('/scan', '/odom')),
-    )
-}
 
 
 @dataclass(frozen=True)
@@ -111,7 +63,7 @@ class RunSpec:
         return f'{self.target}-{self.world}-{self.method}-{crash}-r{self.repetition}'
 
     @property
-    def spec(self) -> TargetSpec:
+    def spec(self) -> Target:
         """The target."""
         return TARGETS[self.target]
 

@@ -22,8 +22,9 @@ from pathlib import Path
 from typing import Any
 
 from rory_eval.evaluation.judge import Verdict, judge
-from rory_eval.evaluation.plan import BARE, METHODS, TARGETS, WORLDS
+from rory_eval.evaluation.plan import BARE, METHODS, WORLDS
 from rory_eval.evaluation.runner import RECORD, RunRecord
+from rory_eval.targets import TARGETS
 
 # The recovery steps as the supervisor reports them (rory_runtime/supervisor/recovery.py).
 STEPS = (('S1 safe state', ('s1_ms',)), ('S2 isolate', ('s2_ms',)),

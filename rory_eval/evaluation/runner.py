@@ -22,11 +22,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import signal
 import subprocess
 import sys
-import threading
 import time
 import traceback
 from collections.abc import Sequence
@@ -37,11 +34,12 @@ from typing import Any
 import numpy as np
 import yaml
 
-from rory_eval.evaluation.plan import BARE, TARGETS, Kind, RunSpec, TargetSpec
-from rory_eval.simrun import LATCHED, REPO, SimRun, SimRunResult, store_events, wait_for_clock
+from rory_eval.evaluation.plan import BARE, RunSpec
+from rory_eval.harness.killer import Killer
+from rory_eval.harness.simrun import LATCHED, SimRun, SimRunResult, store_events
+from rory_eval.targets import TARGETS, Kind, Target
 
 RECORD = 'record.json'
-KILL_TIMEOUT = 120.0  # s to wait for the clock before giving up on the kill
 
 
 @dataclass
@@ -96,39 +94,20 @@ def readers(spec: RunSpec) -> int:
     return 2 if spec.method in ('rory', 'replay') else 1
 
 
-def node_argv(target: TargetSpec, world: str) -> list[str]:
+def node_argv(target: Target, world: str) -> list[str]:
     """The original node's command line for a world (sim time, start pose, map remaps)."""
-    from rory_eval.quality import depth_mapper, graph_slam, grid_slam
-    from rory_eval.quality.amcl import AMCL
-    from rory_eval.quality.lama_local import LAMA_LOCAL
-
-    script = REPO / 'targets' / target.name / target.node_file
-    if target.name == 'grid_slam':
-        return grid_slam.node_argv(world)
-    if target.name == 'graph_slam':
-        return graph_slam.node_argv(world)
-    if target.name == 'depth_mapper':
-        return depth_mapper.node_argv(world)
-    if target.name == 'amcl':
-        return AMCL.argv(world)
-    if target.name == 'lama_local':
-        # The navigator drives on /amcl_pose: LaMa's pose is remapped onto it.
-        return LAMA_LOCAL.argv(world, extra=['-r', f'{target.pose_topic}:=/amcl_pose'])
-    if target.name == 'navigator':
-        # The goal arrives once and volatile (goal_transient_local off), as from RViz.
-        return [sys.executable, str(script), '--ros-args', '-p', 'use_sim_time:=true',
-                '-r', '/map:=/ground_truth/map', '-p', 'goal_transient_local:=false']
-    msg = f'no command line for target {target.name}'
-    raise ValueError(msg)
+    if target.kind == Kind.LOCALIZATION and target.pose_topic != '/amcl_pose':
+        # The navigator drives on /amcl_pose: another localizer's pose is remapped onto it.
+        return target.argv(world, '-r', f'{target.pose_topic}:=/amcl_pose')
+    return target.argv(world)
 
 
-def instrument(target: TargetSpec, into: Path) -> Path:
+def instrument(target: Target, into: Path) -> Path:
     """The target instrumented by ``rory_instrument`` into ``into`` (once; reused after)."""
-    source = REPO / 'targets' / target.name
     if not (into / target.node_file).exists():
         into.parent.mkdir(parents=True, exist_ok=True)
-        subprocess.run([sys.executable, '-m', 'rory_instrument', str(source), '--vars',
-                        str(source / 'keyvars.yaml'), '-o', str(into)], check=True,
+        subprocess.run([sys.executable, '-m', 'rory_instrument', str(target.folder), '--vars',
+                        str(target.keyvars), '-o', str(into)], check=True,
                        capture_output=True)
     return into
 
@@ -208,15 +187,15 @@ def _execute(spec: RunSpec, out: Path, domain_id: int, instrumented: Path,
         run.publish_once('/goal_pose', goal_message(spec.world, world.default_goal),
                          subscribers=n)
     elif target.kind == Kind.LOCALIZATION:
-        from rory_eval.quality.navigator import NODE as NAVIGATOR
-
-        run.add_node('navigator', [sys.executable, str(NAVIGATOR), '--ros-args',
+        # The navigator drives on the localizer's pose, its goal latched (not the target).
+        navigator = TARGETS['navigator'].node
+        run.add_node('navigator', [sys.executable, str(navigator), '--ros-args',
                                    '-p', 'use_sim_time:=true', '-r', '/map:=/ground_truth/map'])
         run.publish_latched('/goal_pose', goal_message(spec.world, world.default_goal))
     if target.kind == Kind.MAP:
-        run.record('/map', OccupancyGrid, qos=LATCHED, keep_last=True)
+        run.record(target.result_topic, OccupancyGrid, qos=LATCHED, keep_last=True)
     elif target.kind == Kind.MODEL:
-        run.record('/depth_mapper/cloud', PointCloud2, qos=LATCHED, keep_last=True)
+        run.record(target.result_topic, PointCloud2, qos=LATCHED, keep_last=True)
     if closed_loop:
         run.record('/navigator/status', String, qos=LATCHED)
     pose_topic = '/amcl_pose' if target.kind == Kind.LOCALIZATION else target.pose_topic
@@ -248,7 +227,7 @@ def _execute(spec: RunSpec, out: Path, domain_id: int, instrumented: Path,
             record.usage_by_role = usage.tree.to_json()
 
 
-def _keep(result: SimRunResult, record: RunRecord, target: TargetSpec, pose_topic: str,
+def _keep(result: SimRunResult, record: RunRecord, target: Target, pose_topic: str,
           out: Path) -> None:
     """What the judge and the figures need, from the run's messages."""
     record.ground_truth = [(round(t, 4), round(x, 4), round(y, 4), round(yaw, 4))
@@ -262,51 +241,17 @@ def _keep(result: SimRunResult, record: RunRecord, target: TargetSpec, pose_topi
         pose = msg.pose.pose if hasattr(msg.pose, 'pose') else msg.pose
         t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         record.poses.append((round(t, 4), round(pose.position.x, 4), round(pose.position.y, 4)))
-    if target.kind == Kind.MAP and result.messages.get('/map'):
-        grid = result.last('/map')
+    if target.kind == Kind.MAP and result.messages.get(target.result_topic):
+        grid = result.last(target.result_topic)
         np.savez_compressed(
             out / 'final_map.npz',
             data=np.asarray(grid.data, dtype=np.int8).reshape(grid.info.height, grid.info.width),
             resolution=grid.info.resolution, origin_x=grid.info.origin.position.x,
             origin_y=grid.info.origin.position.y)
-    if target.kind == Kind.MODEL and result.messages.get('/depth_mapper/cloud'):
-        cloud = result.last('/depth_mapper/cloud')
+    if target.kind == Kind.MODEL and result.messages.get(target.result_topic):
+        cloud = result.last(target.result_topic)
         points = np.frombuffer(bytes(cloud.data), dtype=np.float32).reshape(-1, 3)
         np.save(out / 'final_model.npy', points)
-
-
-class Killer(threading.Thread):
-    """SIGKILLs the supervised node ``crash_at`` seconds after the simulator's clock starts."""
-
-    def __init__(self, sim_log: Path, world: str, store: Path, crash_at: float) -> None:
-        super().__init__(daemon=True, name='killer')
-        self.sim_log, self.world, self.store, self.crash_at = sim_log, world, store, crash_at
-        self.killed_at: float | None = None
-        self.error = ''
-        self._finish = threading.Event()
-
-    def run(self) -> None:
-        if not wait_for_clock(self.sim_log, self.world, self._finish, KILL_TIMEOUT):
-            self.error = 'the clock never started'
-            return
-        clock_start = time.monotonic()
-        if self._finish.wait(self.crash_at):
-            self.error = 'the run ended before the crash time'
-            return
-        spawns = [e for e in store_events(self.store) if e.get('kind') == 'spawn']
-        if not spawns:
-            self.error = 'the supervisor never started the node'
-            return
-        try:
-            os.kill(int(spawns[-1]['pid']), signal.SIGKILL)
-        except ProcessLookupError:
-            self.error = f'node pid {spawns[-1]["pid"]} was already gone'
-            return
-        self.killed_at = time.monotonic() - clock_start
-
-    def stop(self) -> None:
-        self._finish.set()
-        self.join(timeout=2.0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -32,43 +32,15 @@ from typing import Any
 
 import numpy as np
 
+from rory_eval.harness.simrun import LATCHED, SimRun, SimRunResult
 from rory_eval.metrics import position_errors
-from rory_eval.simrun import LATCHED, REPO, SimRun, SimRunResult
+from rory_eval.targets import TARGETS, Target
 
 WORLDS = ('office_small', 'workshop', 'real_room')
 # Sim seconds of the route runs: the route (104, 124, 80 s at 0.3 m/s) and a margin.
 ROUTE_SECONDS = {'office_small': 107.0, 'workshop': 127.0, 'real_room': 83.0}
-NAVIGATOR = REPO / 'targets' / 'navigator' / 'navigator_node.py'
 
 Sample = tuple[float, float, float, float]  # (t, x, y, yaw)
-
-
-@dataclass(frozen=True)
-class LocalizerSpec:
-    """How to run a localization target.
-
-    Attributes:
-        name: the target (and its process name in the run).
-        script: its node file.
-        pose_topic: where it publishes PoseWithCovarianceStamped in ``map``.
-    """
-
-    name: str
-    script: Path
-    pose_topic: str
-
-    def argv(self, world: str, *, seed: int = 0, extra: Sequence[str] = ()) -> list[str]:
-        """The node's command line: sim time, the world's start pose, the ground-truth map."""
-        from sim.worlds import get_world
-
-        start = get_world(world).start
-        return [sys.executable, str(self.script), '--ros-args', '-p', 'use_sim_time:=true',
-                '-p', f'initial_pose_x:={start.x}', '-p', f'initial_pose_y:={start.y}',
-                '-p', f'initial_pose_yaw:={start.yaw}', '-r', '/map:=/ground_truth/map',
-                *extra]
-
-
-AMCL = LocalizerSpec('amcl', REPO / 'targets' / 'amcl' / 'amcl_node.py', '/amcl_pose')
 
 
 @dataclass
@@ -172,7 +144,7 @@ def _pct(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else math.nan
 
 
-def run_route(spec: LocalizerSpec, world: str, out: Path, *, domain_id: int, seed: int = 0,
+def run_route(spec: Target, world: str, out: Path, *, domain_id: int, seed: int = 0,
               duration: float | None = None) -> RouteQuality:
     """The world's route with the localizer running; its errors and usage."""
     from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -199,7 +171,7 @@ def run_route(spec: LocalizerSpec, world: str, out: Path, *, domain_id: int, see
         estimates=estimates, truth=list(result.ground_truth), odometry=odometry)
 
 
-def run_navigation(spec: LocalizerSpec, world: str, out: Path, *, domain_id: int,
+def run_navigation(spec: Target, world: str, out: Path, *, domain_id: int,
                    seed: int = 0, goal: str | None = None) -> NavigationQuality:
     """targets/navigator to the world's goal, driving on the localizer's pose."""
     from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -215,8 +187,8 @@ def run_navigation(spec: LocalizerSpec, world: str, out: Path, *, domain_id: int
                  wait_for={'/scan': 2, '/odom': 2, '/ground_truth/map': 2})
     # The navigator listens on /amcl_pose; another localizer's topic is remapped onto it.
     extra = [] if spec.pose_topic == '/amcl_pose' else ['-r', f'{spec.pose_topic}:=/amcl_pose']
-    run.add_node(spec.name, spec.argv(world, extra=extra))
-    run.add_node('navigator', [sys.executable, str(NAVIGATOR), '--ros-args',
+    run.add_node(spec.name, spec.argv(world, *extra))
+    run.add_node('navigator', [sys.executable, str(TARGETS['navigator'].node), '--ros-args',
                                '-p', 'use_sim_time:=true', '-r', '/map:=/ground_truth/map'])
     run.record('/amcl_pose', PoseWithCovarianceStamped, qos=200)
     run.record('/navigator/status', String, qos=LATCHED)
@@ -255,7 +227,7 @@ def _wrap(angle: float) -> float:
 
 # -- figures -------------------------------------------------------------------------------------
 
-def route_figure(spec: LocalizerSpec, q: RouteQuality, out: Path) -> Path:
+def route_figure(spec: Target, q: RouteQuality, out: Path) -> Path:
     """The estimate, ground truth and odometry over the world."""
     from sim.render import render_world
     from sim.worlds import get_world
@@ -271,7 +243,7 @@ def route_figure(spec: LocalizerSpec, q: RouteQuality, out: Path) -> Path:
               f'(odometry max {q.odometry_max:.2f} m)')
 
 
-def navigation_figure(spec: LocalizerSpec, q: NavigationQuality, out: Path) -> Path:
+def navigation_figure(spec: Target, q: NavigationQuality, out: Path) -> Path:
     """The driven path and the localizer's estimate on the way to the goal."""
     from sim.render import render_world
     from sim.worlds import get_world
@@ -285,7 +257,7 @@ def navigation_figure(spec: LocalizerSpec, q: NavigationQuality, out: Path) -> P
               f'{"reached" if q.reached else "NOT reached"}, {q.collisions} collisions')
 
 
-def error_figure(spec: LocalizerSpec, routes: Sequence[RouteQuality], out: Path) -> Path:
+def error_figure(spec: Target, routes: Sequence[RouteQuality], out: Path) -> Path:
     """Position error over time, one panel per world."""
     import matplotlib
 
@@ -317,7 +289,7 @@ def error_figure(spec: LocalizerSpec, routes: Sequence[RouteQuality], out: Path)
 
 # -- the command ---------------------------------------------------------------------------------
 
-def evaluate(spec: LocalizerSpec, argv: Sequence[str] | None = None) -> int:
+def evaluate(spec: Target, argv: Sequence[str] | None = None) -> int:
     """Parse the command line, run, print the tables, draw; 0 when every world passed."""
     parser = argparse.ArgumentParser(prog=f'python -m rory_eval.quality.{spec.name}',
                                      description=f'Quality of targets/{spec.name}')
@@ -365,7 +337,7 @@ def evaluate(spec: LocalizerSpec, argv: Sequence[str] | None = None) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m rory_eval.quality.amcl``."""
-    return evaluate(AMCL, argv)
+    return evaluate(TARGETS['amcl'], argv)
 
 
 if __name__ == '__main__':

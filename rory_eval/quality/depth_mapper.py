@@ -29,13 +29,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from rory_eval.harness.simrun import LATCHED, SimRun
 from rory_eval.metrics import distance_to_geometry, position_errors
-from rory_eval.simrun import LATCHED, REPO, SimRun
+from rory_eval.targets import TARGETS
 from sim.worlds import Box, get_world
 
 FloatArray = npt.NDArray[np.float64]
 
-NODE = REPO / 'targets' / 'depth_mapper' / 'depth_mapper_node.py'
+TARGET = TARGETS['depth_mapper']
 WORLDS = ('office_small', 'workshop', 'real_room')
 # Sim seconds per world: the internal driver's route (sim/README.md) plus a little.
 DURATIONS = {'office_small': 107.0, 'workshop': 127.0, 'real_room': 82.0}
@@ -90,14 +91,6 @@ FOOTNOTE = ('<5cm: model points within 5 cm of the geometry; <5cm*: of those abo
             'odometry median / pose median; kf: keyframe poses after the last loop closure')
 
 
-def node_argv(world: str) -> list[str]:
-    """The node's command line: sim time, started at the world's start pose."""
-    start = get_world(world).start
-    return [sys.executable, str(NODE), '--ros-args', '-p', 'use_sim_time:=true',
-            '-p', f'map_start_x:={float(start.x)!r}', '-p', f'map_start_y:={float(start.y)!r}',
-            '-p', f'map_start_yaw:={float(start.yaw)!r}']
-
-
 def base_poses(camera_poses: Sequence[Any]) -> list[tuple[float, float, float, float]]:
     """(t, x, y, yaw) of base_link from the published camera (optical frame) poses."""
     out = []
@@ -120,7 +113,7 @@ def run_world(world: str, out: Path, *, domain_id: int, seed: int = 0,
     seconds = duration or DURATIONS[world]
     run = SimRun(world, out, domain_id=domain_id, duration=seconds, seed=seed,
                  wait_for={'/camera/depth/points': 1, '/odom': 1})
-    run.add_node('depth_mapper', node_argv(world))
+    run.add_node('depth_mapper', TARGET.argv(world))
     run.record('/depth_mapper/pose', PoseStamped)
     run.record('/depth_mapper/cloud', PointCloud2, qos=LATCHED, keep_last=True)
     run.record('/depth_mapper/keyframes', PathMsg, qos=LATCHED, keep_last=True)

@@ -32,12 +32,13 @@ from typing import Any
 
 import numpy as np
 
+from rory_eval.harness.simrun import LATCHED, SimRun
 from rory_eval.metrics import grid_from_msg, map_score, position_errors
-from rory_eval.simrun import LATCHED, REPO, SimRun
+from rory_eval.targets import TARGETS
 from sim.maps import ground_truth_map
 from sim.worlds import get_world
 
-NODE = REPO / 'targets' / 'graph_slam' / 'graph_slam_node.py'
+TARGET = TARGETS['graph_slam']
 WORLDS = ('office_small', 'workshop', 'real_room')
 # Sim seconds per world: the internal driver's route (sim/README.md) plus a little.
 DURATIONS = {'office_small': 107.0, 'workshop': 127.0, 'real_room': 82.0}
@@ -140,14 +141,6 @@ FOOTNOTE = ('loops: loop-closure edges; opts: those that moved the graph (Gauss-
             'topics; MB: peak RSS')
 
 
-def node_argv(world: str, *extra: str) -> list[str]:
-    """The node's command line: sim time, started at the world's start pose."""
-    start = get_world(world).start
-    return [sys.executable, str(NODE), '--ros-args', '-p', 'use_sim_time:=true',
-            '-p', f'map_start_x:={float(start.x)!r}', '-p', f'map_start_y:={float(start.y)!r}',
-            '-p', f'map_start_yaw:={float(start.yaw)!r}', *extra]
-
-
 def run_world(world: str, out: Path, *, domain_id: int, seed: int = 0,
               duration: float | None = None) -> tuple[WorldResult, dict[str, Any]]:
     """One full-route run; its result and what the figures need (maps, paths, errors)."""
@@ -162,9 +155,9 @@ def run_world(world: str, out: Path, *, domain_id: int, seed: int = 0,
     idle.write_text(IDLE)
     run = SimRun(world, out, domain_id=domain_id, duration=seconds, seed=seed, depth=False,
                  wait_for={'/scan': 4, '/odom': 3})
-    run.add_node('graph_slam', node_argv(world))
-    run.add_node('odometry', node_argv(world, '-p', 'scan_matching:=false',
-                                       '-p', 'loop_closure:=false', *ODOM_REMAP))
+    run.add_node('graph_slam', TARGET.argv(world))
+    run.add_node('odometry', TARGET.argv(world, '-p', 'scan_matching:=false',
+                                         '-p', 'loop_closure:=false', *ODOM_REMAP))
     run.add_node('idle', [sys.executable, str(idle), '--ros-args', '-p', 'use_sim_time:=true'])
     run.record('/map', OccupancyGrid, qos=LATCHED, keep_last=True)
     run.record('/odometry/map', OccupancyGrid, qos=LATCHED, keep_last=True)

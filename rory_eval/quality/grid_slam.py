@@ -24,12 +24,13 @@ from typing import Any
 
 import numpy as np
 
+from rory_eval.harness.simrun import LATCHED, SimRun
 from rory_eval.metrics import grid_from_msg, map_score, position_errors
-from rory_eval.simrun import LATCHED, REPO, SimRun
+from rory_eval.targets import TARGETS
 from sim.maps import ground_truth_map
 from sim.worlds import get_world
 
-NODE = REPO / 'targets' / 'grid_slam' / 'grid_slam_node.py'
+TARGET = TARGETS['grid_slam']
 WORLDS = ('office_small', 'workshop', 'real_room')
 # Sim seconds per world: the internal driver's route (sim/README.md) plus a little.
 DURATIONS = {'office_small': 107.0, 'workshop': 127.0, 'real_room': 82.0}
@@ -73,14 +74,6 @@ FOOTNOTE = ('yaw0°: heading error at the first scan, which the map is anchored 
             'that heading offset taken out (the estimate rotated about the start by it)')
 
 
-def node_argv(world: str) -> list[str]:
-    """The node's command line: sim time, started at the world's start pose."""
-    start = get_world(world).start
-    return [sys.executable, str(NODE), '--ros-args', '-p', 'use_sim_time:=true',
-            '-p', f'map_start_x:={float(start.x)!r}', '-p', f'map_start_y:={float(start.y)!r}',
-            '-p', f'map_start_yaw:={float(start.yaw)!r}']
-
-
 def run_world(world: str, out: Path, *, domain_id: int, seed: int = 0,
               duration: float | None = None) -> tuple[WorldResult, dict[str, Any]]:
     """One full-route run; its result and what the figures need (map, paths, errors)."""
@@ -89,7 +82,7 @@ def run_world(world: str, out: Path, *, domain_id: int, seed: int = 0,
 
     seconds = duration or DURATIONS[world]
     run = SimRun(world, out, domain_id=domain_id, duration=seconds, seed=seed, depth=False)
-    run.add_node('grid_slam', node_argv(world))
+    run.add_node('grid_slam', TARGET.argv(world))
     run.record('/map', OccupancyGrid, qos=LATCHED, keep_last=True)
     run.record('/grid_slam/pose', PoseStamped)
     result = run.run()

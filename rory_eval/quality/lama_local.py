@@ -14,16 +14,13 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
-from rory_eval.quality.amcl import LocalizerSpec, evaluate
-from rory_eval.simrun import REPO
-
-LAMA_LOCAL = LocalizerSpec('lama_local', REPO / 'targets' / 'lama_local' / 'lama_local_node.py',
-                           '/lama_local/pose')
+from rory_eval.quality.amcl import evaluate
+from rory_eval.targets import TARGETS
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m rory_eval.quality.lama_local``."""
-    return evaluate(LAMA_LOCAL, argv)
+    return evaluate(TARGETS['lama_local'], argv)
 
 
 if __name__ == '__main__':

@@ -25,10 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rory_eval.simrun import REPO, SimRun
+from rory_eval.harness.simrun import SimRun
+from rory_eval.targets import TARGETS
 
-NODE = REPO / 'targets' / 'navigator' / 'navigator_node.py'
-AMCL = REPO / 'targets' / 'amcl' / 'amcl_node.py'
+TARGET = TARGETS['navigator']
 
 SETTLE_XY = 0.15  # m: the robot counts as at the goal within this (the node's tolerance 0.08)
 SETTLE_YAW = 0.2  # rad
@@ -173,20 +173,15 @@ def run_goal(world: str, goal: str, out: Path, *, domain_id: int,
     from nav_msgs.msg import Path as PathMsg
     from std_msgs.msg import String
 
-    from rory_eval.simrun import LATCHED
+    from rory_eval.harness.simrun import LATCHED
 
     run = SimRun(world, out, domain_id=domain_id, driver='none', seed=seed, depth=False,
                  duration=duration or DURATIONS.get((world, goal), 60.0),
                  wait_for={'/scan': 1, '/odom': 1, '/ground_truth/pose': 1})
-    run.add_node('navigator', [sys.executable, str(NODE), '--ros-args',
+    run.add_node('navigator', [sys.executable, str(TARGET.node), '--ros-args',
                                '-p', 'use_sim_time:=true', '-r', '/map:=/ground_truth/map'])
     if localization == 'amcl':
-        start = _start_pose(world)
-        run.add_node('amcl', [sys.executable, str(AMCL), '--ros-args',
-                              '-p', 'use_sim_time:=true', '-r', '/map:=/ground_truth/map',
-                              '-p', f'initial_pose_x:={start[0]}',
-                              '-p', f'initial_pose_y:={start[1]}',
-                              '-p', f'initial_pose_yaw:={start[2]}'])
+        run.add_node('amcl', TARGETS['amcl'].argv(world))
         run.wait_for['/ground_truth/pose'] = 0
     else:
         run.add_node('localizer', relay_argv(seed + 1))
@@ -195,13 +190,6 @@ def run_goal(world: str, goal: str, out: Path, *, domain_id: int,
     run.publish_latched('/goal_pose', goal_message(world, goal))
     result = run.run()
     return _measure(world, goal, result, figure)
-
-
-def _start_pose(world: str) -> tuple[float, float, float]:
-    from sim.worlds import get_world
-
-    s = get_world(world).start
-    return s.x, s.y, s.yaw
 
 
 def _measure(world: str, goal_name: str, result: Any, figure: bool) -> GoalRun:

@@ -12,7 +12,7 @@ def fast_rediscovery_env(environ: Mapping[str, str] | None = None) -> dict[str, 
 
     UDPv4 only: after a SIGKILL, Fast DDS's shared-memory transport left the restarted process
     unheard for a median 2.8 s here, against 54 ms over UDPv4 (``python -m
-    rory_eval.discovery``), and a process killed holding a shared-memory port's mutex blocks
+    rory_eval.bench.discovery``), and a process killed holding a shared-memory port's mutex blocks
     every writer to that port for seconds
     (fast_rediscovery_localhost.xml). ``FASTDDS_BUILTIN_TRANSPORTS`` says UDPv4 - except under
     ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, where rmw_fastrtps brings shared memory back

@@ -18,7 +18,7 @@ readers; one thread waits on the active ones (:class:`RingContext`).
 
 The ring's nodes share the supervisor's rclpy context, and so its DDS participant (rclpy has one
 participant per context). A participant of its own cost an idle supervisor 8 more threads,
-2 MB of PSS and 0.27 % of a core (``python -m rory_eval.ring_participant_bench``), and every
+2 MB of PSS and 0.27 % of a core (``python -m rory_eval.bench.ring_participant_bench``), and every
 other participant on the robot one more peer to announce to and track.
 """
 

@@ -3,7 +3,7 @@ process, so what they all import is in memory once.
 
 An interpreter that imports rclpy, its message packages and numpy, and makes a DDS participant,
 holds ~50 MB of PSS on its own; a forked child that shares its parent's pages keeps ~17 MB
-private (``python -m rory_eval.fork_memory_bench``, docs/performance.md). So the supervisor,
+private (``python -m rory_eval.bench.fork_memory_bench``, docs/performance.md). So the supervisor,
 before its own ``rclpy.init`` and before it starts any thread, imports what its nodes import
 from outside their own folders (:func:`~rory_runtime.standby.warm_imports`), freezes those
 objects out of the garbage collector's reach (``gc.freeze``: a collection in a child would

@@ -14,7 +14,7 @@ import pytest
 import yaml
 from supervision import events, wait_for
 
-from rory_eval.scenario import EXAMPLE, scenario_env
+from rory_eval.harness.scenario import EXAMPLE, scenario_env
 from rory_runtime.bundle import bundle_main, reproduce_main
 
 pytestmark = pytest.mark.ros

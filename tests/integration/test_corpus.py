@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.scenario import Kill, Program, run
+from rory_eval.harness.scenario import Kill, Program, run
 
 pytestmark = pytest.mark.ros
 

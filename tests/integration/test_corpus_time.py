@@ -5,7 +5,7 @@ Their clock readings, timer ticks, parameter changes, service requests and lifec
 transitions are inputs (docs/architecture.md, "Timers and the clock", "Parameters",
 "Services", "Lifecycle nodes"): logged while live, replayed as recorded. Two runs of such a
 node never read the same times, so each crashed run is judged as ``make faults``' corpus
-campaign judges it without a reference (rory_eval/corpus_campaign.py): every number applied
+campaign judges it without a reference (rory_eval/faults/corpus_campaign.py): every number applied
 once and in order, the state what its own readings and settings imply, no reading or tick
 taken from the replay's time instead of the recorded one (which shows as a lag or a gap of
 the time since the checkpoint, here about 1 s). The campaign adds the no-crash run and
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.corpus_campaign import NODES, judge_run, run_node
-from rory_eval.scenario import Kill, ScenarioResult
+from rory_eval.faults.corpus_campaign import NODES, judge_run, run_node
+from rory_eval.harness.scenario import Kill, ScenarioResult
 
 pytestmark = pytest.mark.ros
 

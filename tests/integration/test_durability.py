@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.scenario import (
+from rory_eval.harness.scenario import (
     EXAMPLE,
     EventsFile,
     EventTracker,

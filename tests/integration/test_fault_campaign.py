@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.fault_campaign import Case, run_case, short_plan
+from rory_eval.faults.fault_campaign import Case, run_case, short_plan
 
 pytestmark = pytest.mark.ros
 

@@ -10,7 +10,7 @@ import pytest
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Int64
 
-from rory_eval.scenario import Program, run
+from rory_eval.harness.scenario import Program, run
 
 pytestmark = pytest.mark.ros
 
@@ -69,8 +69,8 @@ def test_a_hang_longer_than_the_ring_holds_loses_nothing(tmp_path: Path, ros_dom
     # The flaky integrator (queue depth 100, so its ring keeps 116 messages) hangs once at
     # 50 Hz; hang_timeout 4 s lets ~200 numbers arrive before the kill. The ring starts taking
     # them when the heartbeat is 0.6 s late, so the replacement gets every one.
-    from rory_eval.fault_campaign import FLAKY_DIR
-    from rory_eval.scenario import Kill
+    from rory_eval.faults.fault_campaign import FLAKY_DIR
+    from rory_eval.harness.scenario import Kill
 
     program = Program(FLAKY_DIR, FLAKY_DIR / 'keyvars.yaml', 'flaky_integrator.py',
                       '/integrator/state', 'integrator', settings=(('hang_timeout', 4.0),))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.fleet import robot2_timing, run_fleet
+from rory_eval.harness.fleet import robot2_timing, run_fleet
 
 pytestmark = pytest.mark.ros
 

@@ -17,7 +17,7 @@ from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String, UInt8MultiArray
 from supervision import events, wait_for
 
-from rory_eval.scenario import prepare, scenario_env
+from rory_eval.harness.scenario import prepare, scenario_env
 from rory_runtime import protocol
 
 pytestmark = pytest.mark.ros

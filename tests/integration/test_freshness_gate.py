@@ -26,7 +26,7 @@ import pytest
 import yaml
 from supervision import events, wait_for
 
-from rory_eval.scenario import EXAMPLE, scenario_env
+from rory_eval.harness.scenario import EXAMPLE, scenario_env
 
 pytestmark = pytest.mark.ros
 

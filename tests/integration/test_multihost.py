@@ -1,9 +1,9 @@
 """Recovery across hosts: the node and its supervisor on host a, its publisher on host b.
 
-Hosts are Linux network namespaces joined by a veth pair (rory_eval.hosts); every process
+Hosts are Linux network namespaces joined by a veth pair (rory_eval.harness.hosts); every process
 speaks UDPv4 only (namespaces share /dev/shm: shared memory must not bypass the link) with
 discovery range SUBNET. The integrator is SIGKILLed mid-run; with nothing lost or applied
-twice its final history is exactly 1..N (rory_eval.scenario). Two outages of the link during
+twice its final history is exactly 1..N (rory_eval.harness.scenario). Two outages of the link during
 the recovery show where the network's own guarantee ends, and that RORY reports it: its Fast
 DDS profile (rory_runtime/dds/fast_rediscovery.xml) declares a participant gone after a 3 s
 lease, so a shorter outage is bridged by DDS's reliable resends, and a longer one makes the
@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.hosts import Hosts, netns_available
-from rory_eval.multihost_bench import HostRun, Outage, run_on_hosts
+from rory_eval.bench.multihost_bench import HostRun, Outage, run_on_hosts
+from rory_eval.harness.hosts import Hosts, netns_available
 
 pytestmark = pytest.mark.ros
 

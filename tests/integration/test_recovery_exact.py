@@ -1,8 +1,9 @@
 """A stateful node SIGKILLed at chosen points comes back holding exactly its no-crash state.
 
 Real processes throughout: rory-instrument rewrites examples/integrator, `rory supervise` runs
-it, a publisher process sends 1..N, the node is SIGKILLed (see rory_eval.scenario). Exactness:
-the node's final history is [1, ..., N] - nothing lost, nothing applied twice, in order.
+it, a publisher process sends 1..N, the node is SIGKILLed (see rory_eval.harness.scenario).
+Exactness: the node's final history is [1, ..., N] - nothing lost, nothing applied twice, in
+order.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from rory_eval.scenario import Kill, ScenarioResult, run
+from rory_eval.harness.scenario import Kill, ScenarioResult, run
 
 pytestmark = pytest.mark.ros
 

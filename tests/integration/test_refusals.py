@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.scenario import Program, prepare, scenario_env
+from rory_eval.harness.scenario import Program, prepare, scenario_env
 
 pytestmark = pytest.mark.ros
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.stack import Strike, run_stack
+from rory_eval.harness.stack import Strike, run_stack
 
 pytestmark = pytest.mark.ros
 

@@ -1,7 +1,7 @@
 """Crash storms, short version: a few drawn schedules (fixed seed) and every kept regression.
 
 Each run strikes the fault-injectable integrator under RORY with a schedule of 1-5 faults
-soon after one another (rory_eval/storm_campaign.py); the node must end with exactly 1..N in
+soon after one another (rory_eval/faults/storm_campaign.py); the node must end with exactly 1..N in
 order. The full campaign is part of ``make faults``; a schedule it finds wrong is kept in
 ``storm_schedules.json`` beside this file and replayed here from then on.
 """
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 
-from rory_eval.storm_campaign import (
+from rory_eval.faults.storm_campaign import (
     Outcome,
     Schedule,
     describe,

@@ -25,7 +25,7 @@ from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
 from supervision import stop, wait_for
 
-from rory_eval.scenario import prepare, scenario_env
+from rory_eval.harness.scenario import prepare, scenario_env
 from rory_runtime.supervisor.diagnostics import EVENTS_QOS
 
 pytestmark = pytest.mark.ros

@@ -16,7 +16,7 @@ from rclpy.parameter import parameter_value_to_python
 from rclpy.signals import SignalHandlerOptions
 from supervision import events, stop, wait_for
 
-from rory_eval.scenario import prepare, scenario_env
+from rory_eval.harness.scenario import prepare, scenario_env
 
 pytestmark = pytest.mark.ros
 

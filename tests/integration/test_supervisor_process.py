@@ -17,7 +17,7 @@ from rosbags.rosbag2 import Reader
 from supervision import events as read_events
 from supervision import wait_for
 
-from rory_eval.scenario import EXAMPLE, Kill, Program, prepare, run, scenario_env
+from rory_eval.harness.scenario import EXAMPLE, Kill, Program, prepare, run, scenario_env
 from rory_runtime import protocol
 from rory_runtime.codec import decode_vars
 from rory_runtime.store import CheckpointStore

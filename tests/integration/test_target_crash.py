@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.target_crash import TARGETS, compare, run_under_rory
+from rory_eval.faults.target_crash import compare, run_under_rory
+from rory_eval.targets import TARGETS
 
 pytestmark = pytest.mark.ros
 

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.target_faults import TARGETS, Case, run_case, run_target
+from rory_eval.faults.target_faults import Case, run_case, run_target
+from rory_eval.targets import TARGETS
 
 pytestmark = pytest.mark.ros
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.scenario import EXAMPLE, _Observer, joining, scenario_env
+from rory_eval.harness.scenario import EXAMPLE, _Observer, joining, scenario_env
 
 pytestmark = pytest.mark.ros
 

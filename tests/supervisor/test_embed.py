@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.scenario import scenario_env
+from rory_eval.harness.scenario import scenario_env
 from rory_runtime.errors import ConfigError
 from rory_runtime.supervisor.embed import resolve_config
 

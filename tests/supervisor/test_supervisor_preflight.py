@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.scenario import scenario_env
+from rory_eval.harness.scenario import scenario_env
 from rory_runtime.errors import ConfigError
 from rory_runtime.supervisor.config import check_commands, check_store, load_config
 from rory_runtime.supervisor.embed import absolute_file_arguments

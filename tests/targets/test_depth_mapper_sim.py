@@ -21,8 +21,8 @@ from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import PointCloud2, PointField
 
+from rory_eval.harness.simrun import LATCHED, SimRun
 from rory_eval.metrics import distance_to_geometry, position_errors
-from rory_eval.simrun import LATCHED, SimRun
 from sim.worlds import get_world
 
 pytestmark = pytest.mark.ros

@@ -18,9 +18,9 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import OccupancyGrid
 from sensor_msgs.msg import LaserScan
 
+from rory_eval.harness.scenario import joining, scenario_env
+from rory_eval.harness.simrun import LATCHED, REPO, SimRun
 from rory_eval.metrics import grid_from_msg, map_score, position_errors
-from rory_eval.scenario import joining, scenario_env
-from rory_eval.simrun import LATCHED, REPO, SimRun
 from sim.maps import ground_truth_map
 from sim.sensors import LIDAR
 from sim.simulation import Simulation

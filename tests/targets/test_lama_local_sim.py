@@ -11,8 +11,8 @@ import pytest
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid
 
+from rory_eval.harness.simrun import REPO, SimRun
 from rory_eval.metrics import position_errors
-from rory_eval.simrun import REPO, SimRun
 from sim.worlds import get_world
 
 pytestmark = pytest.mark.ros

@@ -25,9 +25,9 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import LaserScan
 
-from rory_eval.quality.navigator import NODE, run_goal
-from rory_eval.scenario import scenario_env
-from rory_eval.simrun import LATCHED
+from rory_eval.harness.scenario import scenario_env
+from rory_eval.harness.simrun import LATCHED
+from rory_eval.quality.navigator import TARGET, run_goal
 
 pytestmark = pytest.mark.ros
 
@@ -58,7 +58,7 @@ def test_malformed_messages_are_warned_about_and_survived(tmp_path: Path,
     env = scenario_env(ros_domain)
     log_path = tmp_path / 'navigator.log'
     with log_path.open('wb') as log:
-        proc = subprocess.Popen([sys.executable, str(NODE)], env=env, stdout=log,
+        proc = subprocess.Popen([sys.executable, str(TARGET.node)], env=env, stdout=log,
                                 stderr=subprocess.STDOUT, start_new_session=True)
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain,

@@ -9,10 +9,10 @@ from rory_eval.evaluation.plan import (
     MAPPING_SECONDS,
     METHODS,
     NAVIGATION_SECONDS,
-    TARGETS,
     RunSpec,
     build_plan,
 )
+from rory_eval.targets import TARGETS
 
 
 def test_every_cell_has_a_reference_and_a_crash_run_per_method() -> None:

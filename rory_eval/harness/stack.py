@@ -1,0 +1,229 @@
+"""A whole stack under one supervisor in the simulator: AMCL localizes, the navigator drives on it.
+
+One ``rory supervise`` config runs both nodes (each with its own method) and holds ``/e_stop``,
+which the simulator obeys, while any of them recovers. The robot must reach the world's goal,
+received once by the navigator (volatile, as from RViz), with no collision, however the nodes
+are struck: one alone (the other keeps running, its process untouched) or several at the same
+moment (all recover; the stop is held from the first one's S1 until the last one's S4).
+
+    python -m rory_eval.harness.stack --world real_room --strike 8:amcl --strike 16:amcl,navigator
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from rory_eval.harness.simrun import LATCHED, SimRun, store_events, wait_for_clock
+from rory_eval.targets import TARGETS
+
+NODES = ('amcl', 'navigator')
+GOAL_XY = 0.25  # m, as the evaluation's judge (rory_eval/evaluation/judge.py)
+CLOCK_TIMEOUT = 90.0
+
+
+@dataclass(frozen=True)
+class Strike:
+    """SIGKILL these nodes ``at`` sim seconds after the clock starts, all at once."""
+
+    at: float
+    nodes: tuple[str, ...]
+
+    @classmethod
+    def parse(cls, text: str) -> Strike:
+        """``8:amcl`` or ``16:amcl,navigator``."""
+        at, _, names = text.partition(':')
+        nodes = tuple(n for n in names.split(',') if n)
+        unknown = [n for n in nodes if n not in NODES]
+        if not nodes or unknown:
+            msg = f'--strike {text!r}: name nodes among {", ".join(NODES)}'
+            raise ValueError(msg)
+        return cls(float(at), nodes)
+
+
+@dataclass
+class StackResult:
+    """What one stack run showed."""
+
+    world: str
+    reached: bool  # the navigator said REACHED, and the robot is at the goal
+    goal_distance: float
+    collisions: int
+    statuses: list[str]
+    events: list[dict[str, Any]]
+    strikes: list[tuple[float, str, int]]  # (wall time, node, pid killed)
+    e_stop: list[tuple[float, bool]]  # (wall time received, data)
+    errors: list[str] = field(default_factory=list)
+
+    def spawns(self, node: str) -> list[dict[str, Any]]:
+        """The node's spawn events, first start included."""
+        return [e for e in self.events if e['kind'] == 'spawn' and e['node'] == node]
+
+    def recoveries(self, node: str) -> list[dict[str, Any]]:
+        """The node's 'recovered' events."""
+        return [e for e in self.events if e['kind'] == 'recovered' and e['node'] == node]
+
+
+def instrument(name: str, into: Path) -> Path:
+    target = TARGETS[name]
+    if not into.exists():
+        subprocess.run([sys.executable, '-m', 'rory_instrument', str(target.folder), '--vars',
+                        str(target.keyvars), '-o', str(into)], check=True,
+                       capture_output=True)
+    return into
+
+
+def stack_config(world: str, out: Path, methods: dict[str, str]) -> Path:
+    """The stack's ``rory supervise`` config: both nodes, /e_stop held while either recovers."""
+    nodes = []
+    for name in NODES:
+        target = TARGETS[name]
+        copy = instrument(name, out / 'inst' / name)
+        # The instrumented copy's script, then the original's arguments (--ros-args, sim time,
+        # the world's start pose, the map; the navigator's goal volatile, as from RViz).
+        nodes.append({'name': name,
+                      'command': ['python', str(copy / target.node_file),
+                                  *target.argv(world)[2:]],
+                      'method': methods.get(name, 'rory'), 'replay': 'fast'})
+    config = {
+        'nodes': nodes,
+        'safe_state': [{'topic': '/e_stop', 'type': 'std_msgs/msg/Bool',
+                        'hold': {'data': True}, 'release': {'data': False}}],
+        'store': str(out / 'store'),
+    }
+    path = out / 'stack.yaml'
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
+class Striker(threading.Thread):
+    """Kills the named nodes at their sim times (the clock runs at wall pace)."""
+
+    def __init__(self, sim_log: Path, world: str, store: Path,
+                 strikes: Sequence[Strike]) -> None:
+        super().__init__(daemon=True, name='striker')
+        self.sim_log, self.world, self.store = sim_log, world, store
+        self.strikes = sorted(strikes, key=lambda s: s.at)
+        self.done: list[tuple[float, str, int]] = []
+        self.errors: list[str] = []
+        self._finish = threading.Event()
+
+    def run(self) -> None:
+        if not wait_for_clock(self.sim_log, self.world, self._finish, CLOCK_TIMEOUT):
+            self.errors.append('the clock never started')
+            return
+        start = time.monotonic()
+        for strike in self.strikes:
+            if self._finish.wait(max(0.0, start + strike.at - time.monotonic())):
+                self.errors.append(f'the run ended before the strike at {strike.at} s')
+                return
+            spawns = store_events(self.store)
+            pids = {}
+            for node in strike.nodes:
+                mine = [e for e in spawns if e['kind'] == 'spawn' and e['node'] == node]
+                if not mine:
+                    self.errors.append(f'{node} was never spawned')
+                    continue
+                pids[node] = int(mine[-1]['pid'])
+            for node, pid in pids.items():  # back to back: "at the same time"
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                    self.done.append((time.time(), node, pid))
+                except ProcessLookupError:
+                    self.errors.append(f'{node} pid {pid} was already gone at {strike.at} s')
+
+    def stop(self) -> None:
+        self._finish.set()
+        self.join(timeout=2.0)
+
+
+def run_stack(world: str, out: Path, *, domain_id: int, strikes: Sequence[Strike],
+              duration: float | None = None,
+              methods: dict[str, str] | None = None) -> StackResult:
+    """One run of the stack; every process is reaped."""
+    from std_msgs.msg import Bool, String
+
+    from rory_eval.evaluation.plan import NAVIGATION_SECONDS
+    from rory_eval.quality.navigator import goal_message
+    from sim.worlds import get_world
+
+    out = out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    config = stack_config(world, out, methods or {})
+    store = out / 'store'
+    seconds = duration or NAVIGATION_SECONDS.get(world, 50.0) + 10.0
+    # Each input is read by both nodes and by RORY's ring for each (rory/replay log).
+    readers = 4
+    run = SimRun(world, out / 'run', domain_id=domain_id, duration=seconds, driver='none',
+                 wait_for={'/scan': readers, '/odom': readers},
+                 sim_args=['--start-delay', '1.0'])
+    run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
+                                str(config)])
+    spec = get_world(world)
+    run.publish_once('/goal_pose', goal_message(world, spec.default_goal), subscribers=2)
+    run.record('/navigator/status', String, qos=LATCHED)
+    run.record('/e_stop', Bool, qos=LATCHED)
+    striker = Striker(out / 'run' / 'sim.log', world, store, strikes)
+    striker.start()
+    wall_minus_mono = time.time() - time.monotonic()
+    try:
+        result = run.run()
+    finally:
+        striker.stop()
+    statuses: list[str] = []
+    for msg in result.messages.get('/navigator/status', []):
+        if not statuses or statuses[-1] != msg.data:
+            statuses.append(msg.data)
+    e_stop = [(t + wall_minus_mono, bool(m.data)) for m, t in
+              zip(result.messages.get('/e_stop', []), result.received_at.get('/e_stop', []),
+                  strict=True)]
+    goal = spec.goals[spec.default_goal]
+    distance = math.inf
+    if result.ground_truth:
+        _, x, y, _ = result.ground_truth[-1]
+        distance = math.hypot(x - goal.x, y - goal.y)
+    reached = bool(statuses) and statuses[-1] == 'REACHED' and distance <= GOAL_XY
+    return StackResult(world, reached, distance, int(result.summary.get('collisions', 0)),
+                       statuses, store_events(store), striker.done, e_stop, striker.errors)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the stack once and print what happened; exit 0 when the goal was reached."""
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.harness.stack', description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--world', default='real_room')
+    parser.add_argument('--strike', action='append', type=Strike.parse, default=[],
+                        metavar='T:NODE[,NODE]', help='SIGKILL nodes T sim seconds in')
+    parser.add_argument('--method', action='append', default=[], metavar='NODE=METHOD')
+    parser.add_argument('--duration', type=float)
+    parser.add_argument('--domain', type=int, default=98)
+    parser.add_argument('--out', type=Path, default=Path('stack-out'))
+    args = parser.parse_args(argv)
+    methods = dict(m.split('=', 1) for m in args.method)
+    result = run_stack(args.world, args.out, domain_id=args.domain, strikes=args.strike,
+                       duration=args.duration, methods=methods)
+    for node in NODES:
+        for rec in result.recoveries(node):
+            print(f'{node}: recovered in {rec["total_ms"]:.0f} ms')
+    print(f'statuses {result.statuses}; goal {"reached" if result.reached else "NOT reached"} '
+          f'({result.goal_distance:.2f} m), collisions {result.collisions}; e_stop '
+          f'{[v for _, v in result.e_stop]}')
+    for error in result.errors:
+        print(f'error: {error}')
+    return 0 if result.reached and not result.collisions and not result.errors else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -11,6 +11,12 @@ alternate, the order swapped from run to run. CPU is each process tree's *steady
 second half of the run, every process up) in % of one core, summed; PSS is summed at the end;
 the simulator is left out of both.
 
+``--configs`` adds the other methods, in the order they add mechanisms, so that each one's
+cost is read apart (issue 22's goal 3): ``restart`` is the runtime in each node and the
+supervisor with nothing kept; ``checkpoint`` adds checkpoints; ``replay`` the write-ahead log
+and the supervisor's ring, no checkpoints; ``rory`` both and the warm standby. All configurations
+of a run go in turn, the order reversed from run to run.
+
 The strike runs (rory only) SIGKILL each node alone, one after another, then two at once, and
 report each recovery's total time and whether it started from the warm standby.
 
@@ -37,6 +43,10 @@ from rory_eval.harness.stack import GOAL_XY, Strike, Striker, instrument
 from rory_eval.targets import TARGETS
 
 STACK = ('grid_slam', 'graph_slam', 'depth_mapper', 'amcl', 'lama_local', 'navigator')
+CONFIGS = ('bare', 'restart', 'checkpoint', 'replay', 'rory')
+"""bare, then the methods in the order they add mechanisms (the module's docstring)."""
+LOGGING = frozenset({'replay', 'rory'})
+"""The configurations whose supervisor keeps a ring of the nodes' inputs."""
 DURATION = 40.0  # sim s: the navigator's 30 s to real_room's goal, and then some
 SETTLE = 12.0  # sim s before the first strike: every node up, its first checkpoints, standby
 STRIKE_GAP = 4.0  # sim s between strikes: the last recovery done, the standby ready again
@@ -47,14 +57,14 @@ def bare_commands(world: str) -> dict[str, list[str]]:
     return {name: TARGETS[name].argv(world) for name in STACK}
 
 
-def stack_config(world: str, out: Path) -> Path:
+def stack_config(world: str, out: Path, method: str = 'rory') -> Path:
     """One supervisor config for the six, each its instrumented copy, /e_stop held."""
     nodes = []
     for name, argv in bare_commands(world).items():
         script = Path(argv[1])
         copy = instrument(name, out.parent / 'instrumented' / name)
         nodes.append({'name': name, 'command': ['python', str(copy / script.name), *argv[2:]],
-                      'method': 'rory', 'replay': 'fast'})
+                      'method': method, **({'replay': 'fast'} if method in LOGGING else {})})
     config = {
         'nodes': nodes,
         'safe_state': [{'topic': '/e_stop', 'type': 'std_msgs/msg/Bool',
@@ -73,7 +83,7 @@ def _readers(config: str) -> dict[str, int]:
     # One per node that reads it.
     per_node = Counter(topic for name in STACK for topic in TARGETS[name].inputs)
     # Under rory the supervisor's ring reads each node's inputs too.
-    return {t: n * (2 if config == 'rory' else 1) for t, n in per_node.items()}
+    return {t: n * (2 if config in LOGGING else 1) for t, n in per_node.items()}
 
 
 def run_once(config: str, world: str, out: Path, domain: int,
@@ -91,10 +101,10 @@ def run_once(config: str, world: str, out: Path, domain: int,
             run.add_node(name, argv)
     else:
         run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
-                                    str(stack_config(world, out))])
+                                    str(stack_config(world, out, config))])
     spec = get_world(world)
     run.publish_once('/goal_pose', goal_message(world, spec.default_goal),
-                     subscribers=2 if config == 'rory' else 1)
+                     subscribers=2 if config in LOGGING else 1)
     striker = Striker(out / 'sim.log', world, out / 'store', strikes) if strikes else None
     if striker is not None:
         striker.start()
@@ -150,8 +160,9 @@ def strike_plan() -> list[Strike]:
 
 
 def summarise(runs: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """Medians per configuration, and of the per-pair ratios."""
-    by = {c: [r for r in runs if r['config'] == c] for c in ('bare', 'rory')}
+    """Medians per configuration, and of the per-pair ratios (each configuration against the
+    bare run of the same repetition)."""
+    by = {c: [r for r in runs if r['config'] == c] for c in CONFIGS}
     out: dict[str, Any] = {}
     for config, group in by.items():
         if group:
@@ -163,11 +174,16 @@ def summarise(runs: Sequence[dict[str, Any]]) -> dict[str, Any]:
                                                       for r in group)
                                  for k in ('cpu_percent', 'pss_mb', 'processes')}
                           for role in roles}}
-    pairs = list(zip(by['bare'], by['rory'], strict=False))
-    if pairs:
-        out['cpu_ratio'] = statistics.median(r['cpu_percent'] / b['cpu_percent']
-                                             for b, r in pairs)
-        out['pss_added_mb'] = statistics.median(r['pss_mb'] - b['pss_mb'] for b, r in pairs)
+    for config in CONFIGS[1:]:
+        pairs = list(zip(by['bare'], by[config], strict=False))
+        if pairs and config in out:
+            out[config]['cpu_ratio'] = statistics.median(
+                r['cpu_percent'] / b['cpu_percent'] for b, r in pairs)
+            out[config]['pss_added_mb'] = statistics.median(
+                r['pss_mb'] - b['pss_mb'] for b, r in pairs)
+    if 'rory' in out and 'cpu_ratio' in out['rory']:
+        out['cpu_ratio'] = out['rory']['cpu_ratio']
+        out['pss_added_mb'] = out['rory']['pss_added_mb']
         # The goal: the bare nodes' PSS + 60 MB + 15 MB per node.
         out['pss_budget_mb'] = 60.0 + 15.0 * len(STACK)
     return out
@@ -175,17 +191,19 @@ def summarise(runs: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 def table(summary: dict[str, Any], runs: int) -> str:
     """Markdown: per configuration and role, CPU and PSS (medians)."""
-    lines = ['| configuration | role | processes | CPU (% of a core) | PSS (MB) |',
-             '|---|---|---:|---:|---:|']
-    for config in ('bare', 'rory'):
+    lines = ['| configuration | role | processes | CPU (% of a core) | PSS (MB) | vs bare |',
+             '|---|---|---:|---:|---:|---|']
+    for config in CONFIGS:
         entry = summary.get(config)
         if entry is None:
             continue
         for role, usage in entry['roles'].items():
             lines.append(f'| {config} | {role} | {usage["processes"]:.0f} '
-                         f'| {usage["cpu_percent"]:.1f} | {usage["pss_mb"]:.0f} |')
+                         f'| {usage["cpu_percent"]:.1f} | {usage["pss_mb"]:.0f} | |')
+        versus = (f'{entry["cpu_ratio"]:.2f}x, +{entry["pss_added_mb"]:.0f} MB'
+                  if 'cpu_ratio' in entry else '')
         lines.append(f'| {config} | **all** | | **{entry["cpu_percent"]:.1f}** '
-                     f'| **{entry["pss_mb"]:.0f}** |')
+                     f'| **{entry["pss_mb"]:.0f}** | {versus} |')
     if 'cpu_ratio' in summary:
         lines += ['', f'rory against bare, medians of {runs} side-by-side pairs: CPU '
                       f'**{summary["cpu_ratio"]:.2f}x** (goal 1.10x), PSS '
@@ -214,7 +232,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.stack_bench',
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('--runs', type=int, default=3, help='bare/rory pairs')
+    parser.add_argument('--runs', type=int, default=3,
+                        help='repetitions: each configuration once in each')
+    parser.add_argument('--configs', nargs='+', choices=CONFIGS, default=['bare', 'rory'],
+                        help='configurations to run (bare is needed for the ratios)')
     parser.add_argument('--strike-runs', type=int, default=1)
     parser.add_argument('--world', default='real_room')
     parser.add_argument('--domain', type=int, default=88)
@@ -223,8 +244,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     exit_on_sigterm()
     out = args.out.resolve()
     runs: list[dict[str, Any]] = []
+    configs = [c for c in CONFIGS if c in args.configs]
     for i in range(args.runs):
-        order = ('bare', 'rory') if i % 2 == 0 else ('rory', 'bare')
+        order = configs if i % 2 == 0 else list(reversed(configs))
         for config in order:
             began = time.monotonic()
             record = run_once(config, args.world, out / 'runs' / f'{config}-{i}', args.domain)

@@ -38,7 +38,6 @@ import inspect
 import json
 import logging
 import os
-import queue
 import signal
 import sys
 import threading
@@ -74,11 +73,12 @@ from . import (
     node_services,
     protocol,
 )
+from .checkpointer import Checkpointer, node_clock_reading
 from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
 from .event_clock import EventClock, Reading
 from .freshness import rules_from
 from .inflight import InFlightSlot, slot_path
-from .log import SegmentStore, SegmentWriter, default_typestore
+from .log import SegmentStore, default_typestore
 from .msgtypes import type_name_of
 from .protocol import (
     DEFAULT_CHANNEL,
@@ -100,9 +100,8 @@ from .protocol import (
     StatusKind,
 )
 from .qos import offered_qos
-from .state import CheckpointSpec, read_state, write_state
+from .state import CheckpointSpec, write_state
 from .store import Checkpoint, CheckpointStore
-from .threads import name_this_thread
 
 _logger = logging.getLogger('rory.runtime')
 
@@ -387,37 +386,6 @@ class _Handover:
     last_relay_ns: int = 0
 
 
-class _IoWorker:
-    """Runs checkpoint and segment I/O in order, off the node's executor thread.
-
-    Only the snapshot needs the node paused; closing a segment (its MCAP summary and
-    metadata.yaml), writing a checkpoint with fsync and pruning can follow in the background.
-    Order is what keeps them safe: segments are pruned only after the newer checkpoint is
-    durable, so a crash at any point leaves a checkpoint whose segments are all there.
-    """
-
-    def __init__(self) -> None:
-        self._jobs: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name='rory-io', daemon=True)
-        self._thread.start()
-
-    def submit(self, job: Callable[[], None]) -> None:
-        self._jobs.put(job)
-
-    def _run(self) -> None:
-        name_this_thread('rory-io')
-        while (job := self._jobs.get()) is not None:
-            try:
-                job()
-            except Exception:
-                _logger.exception('[rory] background I/O failed')
-
-    def drain(self, timeout: float = 5.0) -> None:
-        """Finish queued jobs and stop."""
-        self._jobs.put(None)
-        self._thread.join(timeout)
-
-
 def _process_start_ns() -> int | None:
     """Wall-clock start of this process (for the restart part of recovery time)."""
     try:
@@ -507,10 +475,6 @@ class NodeRuntime:
         self.inflight = InFlightSlot(slot_path(env.store, env.node_id), env.incarnation)
         self.checkpoints = CheckpointStore(env.store, env.node_id)
         self.segments = SegmentStore(env.store, env.node_id)
-        self.writer: SegmentWriter | None = None
-        self.next_segment = 1
-        self.previous_cut: int | None = None
-        self._next_seq = 0  # set at start-up from the store
         self.reported_errors: set[str] = set()
         self._group: MutuallyExclusiveCallbackGroup | None = None
         self._status_pub: Publisher | None = None
@@ -522,9 +486,11 @@ class NodeRuntime:
         self._final_taken = False
         self._closing = False
         self._started = False
-        self._io = _IoWorker()
-        # The buffers of the last packed checkpoint's large arrays, for the next snapshot.
-        self._array_pool = codec.ArrayPool()
+        # The segment being written and the checkpoints that cut the log (checkpointer.py).
+        self.checkpointer = Checkpointer(
+            spec, self.method, env.node_id, env.incarnation, self.lock, self.checkpoints,
+            self.segments, error=self._error, status=self._status,
+        )
         atexit.register(self.close)
 
     @property
@@ -791,7 +757,7 @@ class NodeRuntime:
         if self.env.mode == Mode.RECOVER and self.method.checkpoints:
             restored = self._restore(refused)
         restore_ms = (time.perf_counter() - began) * 1000.0
-        self._next_seq = self.checkpoints.next_seq()
+        self.checkpointer.number_from_store()
         if self.method.logs or self.env.gated:
             on_envelope: Any = self._on_envelope  # rclpy's annotation omits (msg, info)
             self._shadow_sub = Node.create_subscription(
@@ -872,7 +838,7 @@ class NodeRuntime:
                     inp = self.inputs.get(topic)
                     size = protocol.window_size(inp.spec) if inp else len(idents) + 64
                     self.windows[topic] = _Window(size, ((s, q) for s, q in idents))
-                self.previous_cut = ckpt.cut
+                self.checkpointer.resume_after(ckpt.cut)
             return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns,
                     'parameters': restored_parameters,
                     'lifecycle': node_lifecycle.state_of(self.node) or None,
@@ -892,9 +858,7 @@ class NodeRuntime:
     def _clock_reading(self) -> freshness.ClockReading:
         """The node's own ROS clock, read live (never a replayed reading)."""
         assert self.node is not None
-        clock = self.node.get_clock()
-        sim = bool(getattr(clock, 'ros_time_is_active', False))
-        return freshness.ClockReading(int(event_clock.original_now(clock).nanoseconds), sim)
+        return node_clock_reading(self.node)
 
     def _first_sim_clock_ns(self, timeout: float) -> int:
         """The time of the next /clock message, 0 if none comes within ``timeout``."""
@@ -1082,15 +1046,8 @@ class NodeRuntime:
             self.windows[inp.topic].add(ident)
             self.stats['applied'] += 1
 
-    def _segment(self) -> SegmentWriter:
-        """The segment being written, opened at the first record after a rotation."""
-        if self.writer is None:
-            self.writer = self.segments.open(self.next_segment)
-            self.next_segment += 1
-        return self.writer
-
     def _log(self, inp: _Input, raw: bytes, info: dict[str, Any], ident: MessageId) -> None:
-        writer = self._segment()
+        writer = self.checkpointer.segment()
         node = self.node
         try:
             writer.write(
@@ -1105,7 +1062,7 @@ class NodeRuntime:
                       record_type: str = protocol.EVENT_RECORD_TYPE) -> None:
         """Log a tick (``detail``: the timer's index), a clock reading (its clock type) or a
         parameter change (``data``)."""
-        writer = self._segment()
+        writer = self.checkpointer.segment()
         try:
             writer.write(record, record_type, at_ns, value_ns, detail,
                          protocol.pack_time_record(value_ns) if data is None else data)
@@ -1137,16 +1094,12 @@ class NodeRuntime:
                 tick = self._checkpoint_tick if self.method.checkpoints else self._rotate_tick
                 Node.create_timer(self.node, self.interval, tick, callback_group=self._group)
         if self.method.checkpoints:
-            self._io.submit(self._prime_array_pool)
+            # On the I/O thread: the first snapshot's copies land in memory already written.
+            self.checkpointer.io.submit(
+                functools.partial(self.checkpointer.prime_array_pool, self.node))
         if self.clock is not None:
             self.stats['clock_fallbacks'] = self.clock.fallbacks
         self._status(StatusKind.RELEASED, **self.stats)
-
-    def _prime_array_pool(self) -> None:
-        # On the I/O thread: the first snapshot's copies land in memory already written. A
-        # variable that cannot be read is the checkpoint's to report.
-        with contextlib.suppress(CodecError):
-            self._array_pool.prime(read_state(self.spec, self.node))
 
     def _open_gates(self, next_segment: int) -> None:
         """Unmute, log from ``next_segment`` on, and apply what live readers hold for the topics
@@ -1154,7 +1107,7 @@ class NodeRuntime:
         self.released = True
         self.released_ns = time.time_ns()
         self.outputs_open = not self.env.gated
-        self.next_segment = max(self.next_segment, next_segment)
+        self.checkpointer.log_from(next_segment)
         self._drain_pending([t for t in self.inputs if t not in self.shadow_topics])
 
     def _drain_pending(self, topics: list[str]) -> dict[str, list[int]]:
@@ -1245,16 +1198,6 @@ class NodeRuntime:
 
     # -- checkpoints --------------------------------------------------------------------------
 
-    def _rotate_segment(self) -> tuple[int, SegmentWriter | None]:
-        """Start a new segment at the next message.
-
-        Returns:
-            The number of the last segment absorbed so far, and the detached writer of the
-            current segment, still to be closed (its messages are already in the OS).
-        """
-        writer, self.writer = self.writer, None
-        return self.next_segment - 1, writer
-
     def _retire_shadow(self) -> None:
         """Destroy the shadow subscription once nothing can come on it any more: released, every
         topic handed over to its live reader, no relayed message waiting for a subscription.
@@ -1273,86 +1216,14 @@ class NodeRuntime:
     def _rotate_tick(self) -> None:
         # replay method: no checkpoints, but keep segments bounded in size.
         self._retire_shadow()
-        with self.lock:
-            _, writer = self._rotate_segment()
-        if writer is not None:
-            self._io.submit(writer.close)
+        self.checkpointer.rotate_and_close()
 
     def _checkpoint_tick(self) -> None:
         self._retire_shadow()
-        persist = self._checkpoint()
-        if persist is not None:
-            self._io.submit(persist)
-
-    def _checkpoint(self) -> Callable[[], None] | None:
-        """Snapshot the node now, under the lock; returns the job that writes it (None when
-        the snapshot was refused)."""
         assert self.node is not None
-        began = time.perf_counter()
-        with self.lock:
-            # The snapshot: the only part that needs the node paused between two callbacks.
-            # Arrays are copied here and packed by the I/O thread, so a 16 MB grid costs the
-            # executor one memcpy, not the several copies packing makes.
-            try:
-                snapshot = codec.snapshot_vars(read_state(self.spec, self.node),
-                                               self._array_pool)
-            except CodecError as err:
-                self._error(f'checkpoint skipped: {err}')
-                return None
-            cut, writer = self._rotate_segment() if self.method.logs else (None, None)
-            windows = {topic: w.snapshot() for topic, w in self.windows.items()}
-            parameters = node_parameters.snapshot(self.node)
-            lifecycle = node_lifecycle.state_of(self.node)
-            taken_on = self._clock_reading()
-            prune_through, self.previous_cut = self.previous_cut, cut
-            seq, self._next_seq = self._next_seq, self._next_seq + 1
-        stall_ms = (time.perf_counter() - began) * 1000.0
-        created_ns = time.time_ns()
-
-        def persist() -> None:
-            if writer is not None:
-                writer.close()
-            try:
-                blob = codec.pack_snapshot(snapshot)
-            except CodecError as err:
-                self._error(f'checkpoint {seq} not written: {err}')
-                return
-            finally:
-                self._array_pool.refill(snapshot)
-            ckpt = Checkpoint(
-                node=self.env.node_id,
-                seq=seq,
-                incarnation=self.env.incarnation,
-                created_ns=created_ns,
-                manifest=self.spec.manifest,
-                method=self.method.value,
-                cut=cut,
-                windows=windows,
-                vars_blob=blob,
-                parameters=parameters,
-                lifecycle=lifecycle,
-                clock_ns=max(taken_on.ns, 0),
-                sim_time=taken_on.sim,
-                freshness=tuple((r.key, r.max_age, r.on_stale) for r in self.spec.freshness),
-            )
-            try:
-                self.checkpoints.write(ckpt)
-            except (OSError, CheckpointError) as err:
-                self._error(f'checkpoint {ckpt.seq} not written: {err}')
-                return
-            # The older checkpoint kept needs the segments after its cut; older ones go.
-            if self.method.logs and prune_through is not None:
-                self.segments.drop_through(prune_through)
-            self._status(
-                StatusKind.CHECKPOINT,
-                seq=ckpt.seq,
-                cut=cut,
-                bytes=len(blob),
-                stall_ms=stall_ms,
-                total_ms=(time.perf_counter() - began) * 1000.0,
-            )
-
-        return persist
+        persist = self.checkpointer.take(self.node, self.windows)
+        if persist is not None:
+            self.checkpointer.io.submit(persist)
 
     # -- reporting ----------------------------------------------------------------------------
 
@@ -1383,7 +1254,7 @@ class NodeRuntime:
     def close(self) -> None:
         """Finish background I/O and seal the open segment, so a clean exit leaves complete
         bags; after a clean stop (SIGINT, SIGTERM), take a last checkpoint first."""
-        self._io.drain()
+        self.checkpointer.io.drain()
         if (self.released and self.method.checkpoints and self.node is not None
                 and not self._callback_failed and not self._final_taken):
             # The node stopped between two callbacks (none raised): its state now is what a
@@ -1392,13 +1263,9 @@ class NodeRuntime:
             self._final_taken = True
             self._closing = True
             try:
-                persist = self._checkpoint()
+                persist = self.checkpointer.take(self.node, self.windows)
                 if persist is not None:
                     persist()
             except Exception as err:  # at exit nothing may propagate; the older one stays
                 _logger.error('[rory] no checkpoint at exit: %s: %s', type(err).__name__, err)
-        with self.lock:
-            if self.writer is not None:
-                with contextlib.suppress(LogError):
-                    self.writer.close()
-                self.writer = None
+        self.checkpointer.close_segment()

@@ -92,7 +92,7 @@ STANDBY_DELAY = 1.0
 """Seconds a node runs after its (re)start before its next standby is started: the standby's
 imports must not compete with the node's own start or recovery for the CPU."""
 
-# The node's ERROR statuses that say a checkpoint was not taken (attach.py's _checkpoint_tick).
+# The node's ERROR statuses saying a checkpoint was not taken (checkpointer.py, Checkpointer.take).
 CHECKPOINT_FAILURE_RE = re.compile(r'checkpoint (skipped|\d+ not written)')
 
 _LIVE = frozenset({

@@ -1,5 +1,6 @@
-"""The node's checkpoint tick: a snapshot on the executor, packed and written on the I/O thread,
-its large arrays copied into the buffers of the checkpoint before (codec.ArrayPool).
+"""The node's checkpoint tick (checkpointer.py): a snapshot on the executor, packed and written on
+the I/O thread, its large arrays copied into the buffers of the checkpoint before
+(codec.ArrayPool).
 
 Driven directly on a NodeRuntime whose node is a plain object holding the key variables; the
 store is real, and the I/O thread is the runtime's own."""
@@ -45,7 +46,7 @@ class _Node:
 
 def _wait_for_io(rt: NodeRuntime) -> None:
     done = threading.Event()
-    rt._io.submit(done.set)
+    rt.checkpointer.io.submit(done.set)
     assert done.wait(10), 'the I/O thread did not finish its jobs'
 
 
@@ -57,10 +58,11 @@ def test_each_checkpoint_holds_its_instant_while_buffers_pass_from_one_to_the_ne
     rt = NodeRuntime(CheckpointSpec(('grid', 'ticks'), 'sha256:0'), env)
     node = _Node()
     rt.node = node  # type: ignore[assignment]
-    rt._next_seq = rt.checkpoints.next_seq()  # what start-up does
+    rt.checkpointer.number_from_store()  # what start-up does
     try:
-        rt._prime_array_pool()  # what release submits to the I/O thread
-        assert len(rt._array_pool) == 1
+        # what release submits to the I/O thread
+        rt.checkpointer.prime_array_pool(node)  # type: ignore[arg-type]
+        assert len(rt.checkpointer.array_pool) == 1
         for tick in range(1, 4):
             node.grid[tick, tick] = float(tick)
             node.ticks = tick
@@ -68,7 +70,7 @@ def test_each_checkpoint_holds_its_instant_while_buffers_pass_from_one_to_the_ne
             # The node changes its grid at once; the checkpoint must not see it.
             node.grid[tick, tick] = -1.0
             _wait_for_io(rt)
-            assert len(rt._array_pool) == 1  # this checkpoint's buffer, for the next
+            assert len(rt.checkpointer.array_pool) == 1  # this checkpoint's buffer, for the next
             latest = rt.checkpoints.latest_valid()
             assert latest is not None and latest.seq == tick
             values = codec.decode_vars(latest.vars_blob)
@@ -85,7 +87,7 @@ def _released(tmp_path: Path, node: _Node) -> NodeRuntime:
                      mode=Mode.FRESH, interval=2.0)
     rt = NodeRuntime(CheckpointSpec(('ticks',), 'sha256:0'), env)
     rt.node = node  # type: ignore[assignment]
-    rt._next_seq = rt.checkpoints.next_seq()
+    rt.checkpointer.number_from_store()
     return rt
 
 

@@ -23,7 +23,8 @@ Recovery from the node's point of view (the supervisor drives S1-S4, see
    anything whose identity is already in the window was absorbed before and is skipped;
 4. RELEASE: outputs unmuted, timers started (S4). Each input topic is still taken from the
    shadow topic, where the supervisor relays what its own reader receives, until the node's live
-   subscription has been seen to carry the same messages; then that topic switches to live.
+   subscription has been seen to carry the same messages; then that topic switches to live
+   (routing.py).
    The relay covers messages published before the new live reader was matched by its writer,
    which a plain re-subscribe would silently lose.
 """
@@ -42,11 +43,10 @@ import signal
 import sys
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar, cast
+from typing import Any, TypeVar
 
 from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParameters, SetParametersAtomically
@@ -79,7 +79,6 @@ from .event_clock import EventClock, Reading
 from .freshness import rules_from
 from .inflight import InFlightSlot, slot_path
 from .log import SegmentStore, default_typestore
-from .msgtypes import type_name_of
 from .protocol import (
     DEFAULT_CHANNEL,
     ENV_CHANNEL,
@@ -92,14 +91,13 @@ from .protocol import (
     ENV_QUARANTINE,
     ENV_SECRET,
     ENV_STORE,
-    FLAG_RELAY,
-    InputSpec,
     MessageId,
     Method,
     Mode,
     StatusKind,
 )
 from .qos import offered_qos
+from .routing import Input, Router, Window
 from .state import CheckpointSpec, write_state
 from .store import Checkpoint, CheckpointStore
 
@@ -123,15 +121,6 @@ def _without_events_pub() -> PublisherEventCallbacks:
 
 def _without_events_sub() -> SubscriptionEventCallbacks:
     return SubscriptionEventCallbacks(use_default_callbacks=False)
-
-
-SWITCH_CONFIRMATIONS = 3
-"""Relayed messages that must also arrive live before a topic switches to its live reader."""
-
-RELAY_SILENCE_NS = 2_000_000_000
-"""A live message that waited this long for the relay means the relay is gone (its supervisor
-died): the topic switches to its live reader rather than stall. The window still rules out
-duplicates; only a publisher matched late could lose a message, which is logged."""
 
 
 @dataclass(frozen=True)
@@ -339,53 +328,6 @@ def _wrap_factory(
 # ---------------------------------------------------------------------------------------------
 
 
-class _Window:
-    """Identities of the last messages applied on one topic."""
-
-    __slots__ = ('_order', '_set')
-
-    def __init__(self, size: int, items: Iterable[MessageId] = ()) -> None:
-        self._order: deque[MessageId] = deque(maxlen=size)
-        self._set: set[MessageId] = set()
-        for item in items:
-            self.add(item)
-
-    def __contains__(self, ident: MessageId) -> bool:
-        return ident in self._set
-
-    def add(self, ident: MessageId) -> None:
-        if len(self._order) == self._order.maxlen:
-            self._set.discard(self._order[0])
-        self._order.append(ident)
-        self._set.add(ident)
-
-    def snapshot(self) -> list[tuple[int, int]]:
-        return list(self._order)
-
-
-@dataclass
-class _Input:
-    """One subscription of the user's node."""
-
-    sub: Subscription
-    topic: str
-    msg_type: type
-    type_name: str
-    callback: Callable[..., Any]
-    with_info: bool
-    user_raw: bool
-    spec: InputSpec
-
-
-@dataclass
-class _Handover:
-    """Per-topic evidence that the live reader carries what the relay carries (after S4)."""
-
-    live_seen: set[MessageId] = field(default_factory=set)
-    relayed: deque[MessageId] = field(default_factory=lambda: deque(maxlen=64))
-    last_relay_ns: int = 0
-
-
 def _process_start_ns() -> int | None:
     """Wall-clock start of this process (for the restart part of recovery time)."""
     try:
@@ -398,20 +340,6 @@ def _process_start_ns() -> int | None:
     except (OSError, ValueError, IndexError, StopIteration):
         return None
     return (boot * 1_000_000_000) + ticks * 1_000_000_000 // os.sysconf('SC_CLK_TCK')
-
-
-def _wants_info(callback: Callable[..., Any]) -> bool:
-    # The same test rclpy's Subscription.callback setter applies.
-    try:
-        inspect.signature(callback).bind(object())
-        return False
-    except TypeError:
-        pass
-    try:
-        inspect.signature(callback).bind(object(), object())
-        return True
-    except TypeError:
-        return False
 
 
 class NodeRuntime:
@@ -434,20 +362,11 @@ class NodeRuntime:
         self.node: Node | None = None
         self.lock = threading.RLock()
         self.released = False
-        self.released_ns = 0
         # Outputs go out: at release, or under a release gate when the supervisor says OPEN.
         self.outputs_open = False
-        self.inputs: dict[str, _Input] = {}
-        self.windows: dict[str, _Window] = {}
-        self.shadow_topics: set[str] = set()
-        self.pending_live: dict[str, list[tuple[MessageId, bytes, dict[str, Any]]]] = {}
-        # Every identity the shadow topic delivered (applied or skipped) while its topic waits
-        # for the switch. The live copies buffered meanwhile are the same messages, and far
-        # more of them than the window of recent identities can hold in a long replay; this
-        # set, dropped at the switch, is what keeps them from being applied twice.
-        self.shadow_seen: dict[str, set[MessageId]] = {}
-        self.handover: dict[str, _Handover] = {}
-        self.orphans: dict[str, list[protocol.Msg]] = {}
+        # Per topic, the identities applied last: _apply adds to them, the router skips what
+        # they hold, checkpoints copy them, a restore sets them.
+        self.windows: dict[str, Window] = {}
         self._shadow_sub: Subscription | None = None  # the replay topic's reader, until retired
         self.held_timers: list[Timer] = []
         # The user's timer callbacks by creation order: a logged tick names its timer by index.
@@ -459,9 +378,6 @@ class NodeRuntime:
         if self.method.logs:
             event_clock.install()
             self.clock = EventClock(self._log_reading, self._readings_unrecorded)
-        # The readings the next replayed event took when it ran live (the streamer sends an
-        # event's clock records just before the event).
-        self._readings: list[Reading] = []
         # The node's own set_parameters_atomically, behind the wrapper that logs changes
         # from outside (set in on_constructed).
         self._set_parameters_atomically: Callable[[list[Parameter]], SetParametersResult] | None
@@ -471,6 +387,13 @@ class NodeRuntime:
                       'passed_by_relay': 0, 'ticks': 0, 'ticks_replayed': 0,
                       'clock_fallbacks': 0, 'parameter_changes': 0,
                       'parameter_changes_replayed': 0, 'requests': 0, 'requests_replayed': 0}
+        # Each input topic's phase, and where its messages are applied from (routing.py).
+        self.router = Router(
+            recovering=env.mode == Mode.RECOVER and self.method.logs,
+            quarantined=env.quarantined, lock=self.lock, windows=self.windows,
+            stats=self.stats, apply=self._apply, replay_event=self._replay_event,
+            error=self._error, status=self._status,
+        )
         # What the node is applying right now, readable after a crash (poison detection).
         self.inflight = InFlightSlot(slot_path(env.store, env.node_id), env.incarnation)
         self.checkpoints = CheckpointStore(env.store, env.node_id)
@@ -501,42 +424,13 @@ class NodeRuntime:
     # -- adoption of the user's entities ----------------------------------------------------
 
     def adopt_subscription(self, sub: Subscription) -> None:
-        """Take over a user subscription: raw delivery through the runtime."""
-        topic = sub.topic_name
-        if topic in self.inputs:
-            if self.inputs[topic].sub is sub:
-                return
-            raise RoryError(
-                f'node subscribes twice to {topic}; RORY records one subscription per topic'
-            )
-        callback = sub.callback
-        if inspect.iscoroutinefunction(callback):
-            raise RoryError(f'async subscription callbacks are not supported yet ({topic})')
-        msg_type = cast(type, sub.msg_type)
-        type_name = type_name_of(msg_type)
-        inp = _Input(
-            sub=sub,
-            topic=topic,
-            msg_type=msg_type,
-            type_name=type_name,
-            callback=callback,
-            with_info=_wants_info(callback),
-            user_raw=bool(sub.raw),
-            spec=InputSpec.from_qos(topic, type_name, sub.qos_profile),
-        )
-        self.inputs[topic] = inp
-        self.windows.setdefault(topic, _Window(protocol.window_size(inp.spec)))
-        self.pending_live.setdefault(topic, [])
-        if self.env.mode == Mode.RECOVER and self.method.logs and not self.released:
-            self.shadow_topics.add(topic)
-        sub.raw = True
-        sub.callback = functools.partial(self._on_live, inp)
-        for msg in self.orphans.pop(topic, []):
-            self._from_shadow(msg)
+        """Take over a user subscription: raw delivery through the router."""
+        if self.router.adopt(sub, released=self.released) is None:
+            return  # adopted already
         if self._hello_sent:
             # Made after start-up (a lifecycle node's on_configure): the ring must read it too.
             self._status(StatusKind.INPUTS,
-                         inputs=[i.spec.to_json() for i in self.inputs.values()])
+                         inputs=[i.spec.to_json() for i in self.router.inputs.values()])
 
     def adopt_publisher(self, pub: Publisher) -> None:
         """Mute a user publisher while the node is isolated."""
@@ -776,7 +670,7 @@ class NodeRuntime:
             method=self.method.value,
             pid=os.getpid(),
             manifest=self.spec.manifest,
-            inputs=[inp.spec.to_json() for inp in self.inputs.values()],
+            inputs=[inp.spec.to_json() for inp in self.router.inputs.values()],
             restored=restored,
             refused=refused,
             restore_ms=restore_ms,
@@ -835,9 +729,9 @@ class NodeRuntime:
                 continue
             with self.lock:
                 for topic, idents in ckpt.windows.items():
-                    inp = self.inputs.get(topic)
+                    inp = self.router.inputs.get(topic)
                     size = protocol.window_size(inp.spec) if inp else len(idents) + 64
-                    self.windows[topic] = _Window(size, ((s, q) for s, q in idents))
+                    self.windows[topic] = Window(size, ((s, q) for s, q in idents))
                 self.checkpointer.resume_after(ckpt.cut)
             return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns,
                     'parameters': restored_parameters,
@@ -912,10 +806,11 @@ class NodeRuntime:
         if envelope.incarnation != self.env.incarnation:
             return  # meant for an earlier process of this node
         if isinstance(envelope, protocol.Sync):
-            counts = {topic: inp.sub.get_publisher_count() for topic, inp in self.inputs.items()}
+            counts = {topic: inp.sub.get_publisher_count()
+                      for topic, inp in self.router.inputs.items()}
             self._status(StatusKind.SYNCED, nonce=envelope.nonce, live_publishers=counts)
         elif isinstance(envelope, protocol.Msg):
-            self._from_shadow(envelope)
+            self.router.from_shadow(envelope)
         elif isinstance(envelope, protocol.Open):
             self._open_outputs()
         else:
@@ -927,57 +822,15 @@ class NodeRuntime:
             self.outputs_open = True
             self._status(StatusKind.OPENED, muted=self.stats['muted'])
 
-    def _is_quarantined(self, topic: str, ident: MessageId) -> bool:
-        # A poison message the supervisor set aside: never applied again, by replay or by a
-        # transient-local publisher re-sending it.
-        if (topic, ident) in self.env.quarantined:
-            self.stats['quarantined'] += 1
-            return True
-        return False
-
-    def _from_shadow(self, msg: protocol.Msg) -> None:
-        if msg.topic == protocol.CLOCK_RECORD:
-            self._readings.append(Reading(msg.seq, msg.source_ns, msg.recv_ns))
-            return
-        # What the event took when it ran live (dropped with it if it is skipped).
-        readings, self._readings = self._readings, []
+    def _replay_event(self, msg: protocol.Msg, readings: list[Reading]) -> None:
+        """A logged tick, request or parameter change from the shadow topic, run again with the
+        clock ``readings`` it took live."""
         if msg.topic == protocol.TIMER_RECORD:
             self._replay_tick(msg.seq, msg.recv_ns, readings)
-            return
-        if msg.topic == protocol.PARAMETERS_RECORD:
+        elif msg.topic == protocol.PARAMETERS_RECORD:
             self._replay_parameters(msg.data, msg.recv_ns, readings)
-            return
-        if msg.topic == protocol.REQUEST_RECORD:
-            self._replay_request(msg.seq, msg.data, msg.recv_ns, readings)
-            return
-        inp = self.inputs.get(msg.topic)
-        if inp is None:
-            # The subscription does not exist yet (created later by a replayed callback?).
-            self.orphans.setdefault(msg.topic, []).append(msg)
-            return
-        if msg.topic not in self.shadow_topics:
-            return  # already switched to its live reader, which carries this message too
-        relayed = bool(msg.flags & FLAG_RELAY)
-        if relayed:
-            self._note_relayed(msg.topic, msg.ident)
-        self.shadow_seen.setdefault(msg.topic, set()).add(msg.ident)
-        if self._is_quarantined(msg.topic, msg.ident):
-            pass
-        elif msg.ident in self.windows[msg.topic]:
-            self.stats['duplicates'] += 1
         else:
-            info = {
-                'source_timestamp': msg.source_ns,
-                'received_timestamp': msg.recv_ns,
-                'publication_sequence_number': msg.seq,
-                'reception_sequence_number': None,
-            }
-            # Before release every replayed message is already in a sealed segment; relayed
-            # ones are not, so the node logs them as it would a live message.
-            self._apply(inp, msg.data, info, msg.ident, readings, log=relayed)
-            self.stats['replayed'] += 1
-        if relayed:
-            self._maybe_switch(msg.topic)
+            self._replay_request(msg.seq, msg.data, msg.recv_ns, readings)
 
     def _replay_tick(self, index: int, event_ns: int, readings: list[Reading]) -> None:
         """One logged tick of the user's timer number ``index``, replayed."""
@@ -990,31 +843,8 @@ class NodeRuntime:
 
     # -- live messages ------------------------------------------------------------------------
 
-    def _on_live(self, inp: _Input, raw: bytes, info: dict[str, Any]) -> None:
-        ident = protocol.message_id(info)
-        if not self.released or inp.topic in self.shadow_topics:
-            pending = self.pending_live[inp.topic]
-            pending.append((ident, raw, info))
-            if self.released:
-                self.handover.setdefault(inp.topic, _Handover()).live_seen.add(ident)
-                self._maybe_switch(inp.topic)
-                state = self.handover.get(inp.topic)
-                last_relay = state.last_relay_ns if state is not None else 0
-                silent = time.time_ns() - max(self.released_ns, last_relay)
-                if inp.topic in self.shadow_topics and silent > RELAY_SILENCE_NS:
-                    self._error(f'no relay for {inp.topic}; switching it to live unconfirmed')
-                    self._switch(inp.topic)
-            return
-        if ident in self.windows[inp.topic]:
-            # e.g. a transient-local publisher re-sending what the checkpoint already holds
-            self.stats['duplicates'] += 1
-            return
-        if self._is_quarantined(inp.topic, ident):
-            return
-        self._apply(inp, raw, info, ident, log=True)
-
     def _apply(
-        self, inp: _Input, raw: bytes, info: dict[str, Any], ident: MessageId, readings:
+        self, inp: Input, raw: bytes, info: dict[str, Any], ident: MessageId, readings:
         Iterable[Reading] = (), *, log: bool
     ) -> None:
         """Run the user's callback on one message under the lock; ``log``: a live message,
@@ -1046,7 +876,7 @@ class NodeRuntime:
             self.windows[inp.topic].add(ident)
             self.stats['applied'] += 1
 
-    def _log(self, inp: _Input, raw: bytes, info: dict[str, Any], ident: MessageId) -> None:
+    def _log(self, inp: Input, raw: bytes, info: dict[str, Any], ident: MessageId) -> None:
         writer = self.checkpointer.segment()
         node = self.node
         try:
@@ -1105,96 +935,9 @@ class NodeRuntime:
         """Unmute, log from ``next_segment`` on, and apply what live readers hold for the topics
         not taken from the shadow topic (all of them after a fresh start)."""
         self.released = True
-        self.released_ns = time.time_ns()
         self.outputs_open = not self.env.gated
         self.checkpointer.log_from(next_segment)
-        self._drain_pending([t for t in self.inputs if t not in self.shadow_topics])
-
-    def _drain_pending(self, topics: list[str]) -> dict[str, list[int]]:
-        """Apply what the live readers of ``topics`` hold and nobody applied yet, in receive
-        order. Returns, per topic, the sequence numbers left out as passed by the relay
-        (:meth:`_passed_by_relay`)."""
-        passed = {topic: self._passed_by_relay(topic) for topic in topics}
-        backlog = [
-            (info['received_timestamp'], self.inputs[topic], ident, raw, info)
-            for topic in topics
-            for ident, raw, info in self.pending_live[topic]
-            if ident not in passed[topic]
-        ]
-        for topic in topics:
-            self.pending_live[topic] = []
-        backlog.sort(key=lambda item: item[0])
-        for _, inp, ident, raw, info in backlog:
-            if ident in self.windows[inp.topic] or ident in self.shadow_seen.get(inp.topic, ()):
-                self.stats['duplicates'] += 1
-            elif not self._is_quarantined(inp.topic, ident):
-                self._apply(inp, raw, info, ident, log=True)
-        return {topic: sorted(ident[1] for ident in idents)
-                for topic, idents in passed.items() if idents}
-
-    def _passed_by_relay(self, topic: str) -> set[MessageId]:
-        """Live messages of ``topic`` the relay skipped and can no longer deliver in order.
-
-        The live reader and the supervisor's ring are two DDS readers on this host. After an
-        outage longer than the DDS lease the publisher matches each of them again on its own
-        schedule, so the live reader may hold a message the ring never got. If the relay has
-        already delivered a later one of the same publisher, applying it now would apply the
-        publisher's messages out of order; it is left out instead (the supervisor reports it
-        inside its input gap, since its ring never logged it). The live reader's own order is
-        the publisher's, so "later" is the position in its pending list. With more than one
-        publisher the sequence numbers are several publishers' and positions across them mean
-        nothing: those messages are applied as before.
-        """
-        seen = self.shadow_seen.get(topic)
-        pending = self.pending_live[topic]
-        if not seen or not pending or self.inputs[topic].sub.get_publisher_count() != 1:
-            return set()
-        last_relayed = max(
-            (i for i, (ident, _, _) in enumerate(pending) if ident in seen), default=-1
-        )
-        window = self.windows[topic]
-        quarantined = self.env.quarantined  # skipped anyway, and counted as such
-        return {ident for ident, _, _ in pending[:last_relayed]
-                if ident not in seen and ident not in window
-                and (topic, ident) not in quarantined}
-
-    def _note_relayed(self, topic: str, ident: MessageId) -> None:
-        state = self.handover.setdefault(topic, _Handover())
-        state.relayed.append(ident)
-        state.last_relay_ns = time.time_ns()
-
-    def _maybe_switch(self, topic: str) -> None:
-        """Switch a topic to its live reader once that reader is seen to carry the relay.
-
-        Evidence: SWITCH_CONFIRMATIONS relayed messages also arrived live, the latest relayed
-        one among them. Publishers deliver reliably and in order, so from that message on the
-        live reader has everything and the relay has delivered everything before it.
-        """
-        state = self.handover.get(topic)
-        if state is None or not state.relayed or topic not in self.shadow_topics:
-            return
-        confirmed = sum(1 for ident in state.relayed if ident in state.live_seen)
-        if confirmed < SWITCH_CONFIRMATIONS or state.relayed[-1] not in state.live_seen:
-            return
-        self._switch(topic)
-
-    def _switch(self, topic: str) -> None:
-        """Take ``topic`` from its live reader from now on."""
-        with self.lock:
-            self.shadow_topics.discard(topic)
-            passed = self._drain_pending([topic]).get(topic, [])
-            self.shadow_seen.pop(topic, None)
-        self.handover.pop(topic, None)
-        if passed:
-            self.stats['passed_by_relay'] += len(passed)
-            seqs = protocol.seq_ranges(passed)
-            self._error(
-                f'{topic}: {len(passed)} message(s) (publication seq {seqs}) '
-                'reached only the live reader, after the relay had delivered later ones from '
-                'the same publisher: not applied, to keep its order (RORY\'s recorder never '
-                'got them; see the input gap)'
-            )
-        self._status(StatusKind.SWITCHED, topic=topic, passed_by_relay=passed)
+        self.router.release()
 
     # -- checkpoints --------------------------------------------------------------------------
 
@@ -1207,8 +950,8 @@ class NodeRuntime:
         a release gate's OPEN, and a recovered process makes its own. Called from the periodic
         tick, never from the subscription's own callback.
         """
-        if (self._shadow_sub is None or not self.released or self.shadow_topics
-                or self.orphans or self.node is None or not self.outputs_open):
+        if (self._shadow_sub is None or not self.released or self.router.shadow_needed()
+                or self.node is None or not self.outputs_open):
             return  # (outputs still muted: the release gate's OPEN comes on it)
         Node.destroy_subscription(self.node, self._shadow_sub)
         self._shadow_sub = None

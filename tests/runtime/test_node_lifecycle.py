@@ -117,7 +117,7 @@ def test_change_state_requests_are_held_logged_and_replayed(
     again = Camera('camera_2', context)
     rt2 = _runtime(tmp_path, again, Mode.RECOVER, 2)
     for entry in readings_first(logged):
-        rt2._from_shadow(protocol.Msg(2, 0, entry.recv_ns, entry.source_ns, entry.seq,
-                                      entry.topic, entry.data))
+        rt2.router.from_shadow(protocol.Msg(2, 0, entry.recv_ns, entry.source_ns, entry.seq,
+                                            entry.topic, entry.data))
     assert again.calls == ['configure', 'activate', 'deactivate']
     assert node_lifecycle.state_of(again) == 'inactive'

@@ -98,8 +98,8 @@ def test_a_change_from_outside_is_logged_and_replays_with_its_callbacks(
     fresh = Tuned(context)
     rt2 = _runtime(tmp_path, fresh, Mode.RECOVER, 2)
     for entry in readings_first(logged):
-        rt2._from_shadow(protocol.Msg(2, 0, entry.recv_ns, entry.source_ns, entry.seq,
-                                      entry.topic, entry.data))
+        rt2.router.from_shadow(protocol.Msg(2, 0, entry.recv_ns, entry.source_ns, entry.seq,
+                                            entry.topic, entry.data))
     assert fresh.get_parameter('gain').value == 3.0 and fresh.kp == 3.0
     assert fresh.seen == ['on gain=3.0', 'post gain']
     assert rt2.stats['parameter_changes_replayed'] == 1

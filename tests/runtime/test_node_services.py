@@ -79,8 +79,8 @@ def test_requests_are_logged_and_replay_in_order_without_a_response(
 
     rt2, _, handler2 = _served(tmp_path, context, Mode.RECOVER, 2)
     for entry in readings_first(logged):
-        rt2._from_shadow(protocol.Msg(2, 0, entry.recv_ns, entry.source_ns, entry.seq,
-                                      entry.topic, entry.data))
+        rt2.router.from_shadow(protocol.Msg(2, 0, entry.recv_ns, entry.source_ns, entry.seq,
+                                            entry.topic, entry.data))
     assert handler2.asked == handler.asked == [True, False, True]
     assert rt2.stats['requests_replayed'] == 3
 

@@ -1,0 +1,449 @@
+"""The node's input path: per topic, where its messages come from and when they are applied
+(docs/architecture.md, "A message, step by step" and "The handover after release").
+
+Each input topic is in one phase of its handover (:class:`TopicPhase`); :func:`transition`
+refuses any change not in :data:`PHASE_EDGES`::
+
+    BUFFERED -> LIVE              a fresh start, or a method without a log: live messages wait
+                                  until release, then are applied in receive order
+    SHADOW -> HANDOVER -> LIVE    a recovery: recorded messages come on the shadow topic; after
+                                  release the supervisor relays what its ring receives until
+                                  the live reader is seen to carry the same messages
+
+A topic the node subscribes to after release starts LIVE.
+
+The :class:`Router` holds that state and decides; the runtime core (attach.py) applies each
+message under its lock (``NodeRuntime._apply``), writes it ahead to the log and replays the
+other logged events (ticks, requests, parameter changes).
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+import inspect
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any, Final, Protocol, cast
+
+from rclpy.subscription import Subscription
+
+from . import protocol
+from .errors import RoryError
+from .event_clock import Reading
+from .msgtypes import type_name_of
+from .protocol import FLAG_RELAY, InputSpec, MessageId, StatusKind
+
+SWITCH_CONFIRMATIONS = 3
+"""Relayed messages that must also arrive live before a topic switches to its live reader."""
+
+RELAY_SILENCE_NS = 2_000_000_000
+"""A live message that waited this long for the relay means the relay is gone (its supervisor
+died): the topic switches to its live reader rather than stall. The window still rules out
+duplicates; only a publisher matched late could lose a message, which is logged."""
+
+
+class TopicPhase(enum.StrEnum):
+    """Where an input topic's messages are taken from, and whether they are applied yet."""
+
+    BUFFERED = 'BUFFERED'  # not released: live messages wait, nothing comes on the shadow topic
+    SHADOW = 'SHADOW'  # recovering, not released: applied from the shadow topic; live ones wait
+    HANDOVER = 'HANDOVER'  # released: applied from the relay until the live reader is confirmed
+    LIVE = 'LIVE'  # applied as the live reader delivers them
+
+
+P = TopicPhase
+PHASE_EDGES: Final[dict[TopicPhase, frozenset[TopicPhase]]] = {
+    P.BUFFERED: frozenset({P.LIVE}),
+    P.SHADOW: frozenset({P.HANDOVER}),
+    P.HANDOVER: frozenset({P.LIVE}),
+    P.LIVE: frozenset(),
+}
+
+_FROM_SHADOW: Final = frozenset({P.SHADOW, P.HANDOVER})
+
+# Bound once for on_live, which runs per message: a member read through its enum class goes
+# through the enum's metaclass, a module global does not.
+_LIVE: Final = P.LIVE
+_HANDOVER: Final = P.HANDOVER
+
+# Logged events other than messages: the runtime core runs them again.
+_EVENT_RECORDS: Final = frozenset({protocol.TIMER_RECORD, protocol.PARAMETERS_RECORD,
+                                   protocol.REQUEST_RECORD})
+
+
+class IllegalPhaseChange(RuntimeError):
+    """A change of a topic's phase the handover does not allow: a bug in the runtime."""
+
+
+def transition(topic: str, old: TopicPhase, new: TopicPhase) -> TopicPhase:
+    """``new``, if ``topic`` may go there from ``old``.
+
+    Raises:
+        IllegalPhaseChange: The edge is not in PHASE_EDGES.
+    """
+    if new not in PHASE_EDGES[old]:
+        raise IllegalPhaseChange(f'{topic}: {old} -> {new} is not allowed')
+    return new
+
+
+class Window:
+    """Identities of the last messages applied on one topic."""
+
+    __slots__ = ('_order', '_set')
+
+    def __init__(self, size: int, items: Iterable[MessageId] = ()) -> None:
+        self._order: deque[MessageId] = deque(maxlen=size)
+        self._set: set[MessageId] = set()
+        for item in items:
+            self.add(item)
+
+    def __contains__(self, ident: MessageId) -> bool:
+        return ident in self._set
+
+    def add(self, ident: MessageId) -> None:
+        if len(self._order) == self._order.maxlen:
+            self._set.discard(self._order[0])
+        self._order.append(ident)
+        self._set.add(ident)
+
+    def snapshot(self) -> list[tuple[int, int]]:
+        return list(self._order)
+
+
+@dataclass
+class Input:
+    """One subscription of the user's node."""
+
+    sub: Subscription
+    topic: str
+    msg_type: type
+    type_name: str
+    callback: Callable[..., Any]
+    with_info: bool
+    user_raw: bool
+    spec: InputSpec
+    phase: TopicPhase
+
+
+@dataclass
+class _HandoverEvidence:
+    """Per-topic evidence that the live reader carries what the relay carries (after S4)."""
+
+    live_seen: set[MessageId] = field(default_factory=set)
+    relayed: deque[MessageId] = field(default_factory=lambda: deque(maxlen=64))
+    last_relay_ns: int = 0
+
+
+class Apply(Protocol):
+    """Runs the user's callback on one message under the runtime's lock (``NodeRuntime._apply``):
+    ``log``, a live message written ahead to the log; else a replayed one with its clock
+    ``readings``."""
+
+    def __call__(self, inp: Input, raw: bytes, info: dict[str, Any], ident: MessageId,
+                 readings: Iterable[Reading] = (), *, log: bool) -> None: ...
+
+
+def _wants_info(callback: Callable[..., Any]) -> bool:
+    # The same test rclpy's Subscription.callback setter applies.
+    try:
+        inspect.signature(callback).bind(object())
+        return False
+    except TypeError:
+        pass
+    try:
+        inspect.signature(callback).bind(object(), object())
+        return True
+    except TypeError:
+        return False
+
+
+class Router:
+    """Per input topic: its phase, the live messages waiting, and the evidence for the switch.
+
+    Args:
+        recovering: Topics start on the shadow topic (a recovery with a log to replay).
+        quarantined: Poison messages the supervisor set aside: never applied again.
+        lock: The runtime's lock, under which every user callback runs.
+        windows: Per topic, the identities applied last (the runtime's: applying adds to them,
+            checkpoints copy them, a restore sets them); what they hold is skipped.
+        stats: The runtime's counters (duplicates, replayed, quarantined, passed_by_relay).
+        apply: Runs the user's callback on one message (``NodeRuntime._apply``).
+        replay_event: Runs a logged tick, request or parameter change again, with the clock
+            readings it took live.
+        error: Reports an error (the runtime's ERROR status).
+        status: Sends a status to the supervisor (SWITCHED).
+    """
+
+    def __init__(
+        self, *, recovering: bool, quarantined: frozenset[tuple[str, MessageId]],
+        lock: threading.RLock, windows: dict[str, Window], stats: dict[str, int], apply: Apply,
+        replay_event: Callable[[protocol.Msg, list[Reading]], None],
+        error: Callable[[str], None], status: Callable[..., None],
+    ) -> None:
+        self._recovering = recovering
+        self._quarantined = quarantined
+        self.lock = lock
+        self.windows = windows
+        self.stats = stats
+        self._apply = apply
+        self._replay_event = replay_event
+        self._error = error
+        self._status = status
+        self.inputs: dict[str, Input] = {}
+        self.pending_live: dict[str, list[tuple[MessageId, bytes, dict[str, Any]]]] = {}
+        # Every identity the shadow topic delivered (applied or skipped) while its topic waits
+        # for the switch. The live copies buffered meanwhile are the same messages, and far
+        # more of them than the window of recent identities can hold in a long replay; this
+        # set, dropped at the switch, is what keeps them from being applied twice.
+        self.shadow_seen: dict[str, set[MessageId]] = {}
+        self.handover: dict[str, _HandoverEvidence] = {}
+        # Shadow messages of topics the node has no subscription to yet.
+        self.orphans: dict[str, list[protocol.Msg]] = {}
+        self.released_ns = 0
+        # The readings the next replayed event took when it ran live (the streamer sends an
+        # event's clock records just before the event).
+        self._readings: list[Reading] = []
+
+    def phase(self, topic: str) -> TopicPhase:
+        """The phase of an input topic."""
+        return self.inputs[topic].phase
+
+    def shadow_needed(self) -> bool:
+        """Whether anything can still come on the shadow topic: a topic not switched to its
+        live reader yet, or a relayed message waiting for a subscription the node has not
+        made."""
+        return bool(self.orphans) or any(
+            inp.phase in _FROM_SHADOW for inp in self.inputs.values())
+
+    # -- subscriptions ------------------------------------------------------------------------
+
+    def adopt(self, sub: Subscription, *, released: bool) -> Input | None:
+        """Take over a user subscription: raw delivery through :meth:`on_live`.
+
+        Returns:
+            Its input, None when it was adopted already.
+
+        Raises:
+            RoryError: A second subscription to the same topic, or an async callback.
+        """
+        topic = sub.topic_name
+        if topic in self.inputs:
+            if self.inputs[topic].sub is sub:
+                return None
+            raise RoryError(
+                f'node subscribes twice to {topic}; RORY records one subscription per topic'
+            )
+        callback = sub.callback
+        if inspect.iscoroutinefunction(callback):
+            raise RoryError(f'async subscription callbacks are not supported yet ({topic})')
+        msg_type = cast(type, sub.msg_type)
+        type_name = type_name_of(msg_type)
+        if released:
+            phase = TopicPhase.LIVE
+        else:
+            phase = TopicPhase.SHADOW if self._recovering else TopicPhase.BUFFERED
+        inp = Input(
+            sub=sub,
+            topic=topic,
+            msg_type=msg_type,
+            type_name=type_name,
+            callback=callback,
+            with_info=_wants_info(callback),
+            user_raw=bool(sub.raw),
+            spec=InputSpec.from_qos(topic, type_name, sub.qos_profile),
+            phase=phase,
+        )
+        self.inputs[topic] = inp
+        self.windows.setdefault(topic, Window(protocol.window_size(inp.spec)))
+        self.pending_live.setdefault(topic, [])
+        sub.raw = True
+        sub.callback = functools.partial(self.on_live, inp)
+        for msg in self.orphans.pop(topic, []):
+            self.from_shadow(msg)
+        return inp
+
+    def _is_quarantined(self, topic: str, ident: MessageId) -> bool:
+        # A poison message the supervisor set aside: never applied again, by replay or by a
+        # transient-local publisher re-sending it.
+        if (topic, ident) in self._quarantined:
+            self.stats['quarantined'] += 1
+            return True
+        return False
+
+    # -- the shadow topic ---------------------------------------------------------------------
+
+    def from_shadow(self, msg: protocol.Msg) -> None:
+        """A message, clock reading or other logged event from the shadow topic: replayed
+        before release, relayed after."""
+        if msg.topic == protocol.CLOCK_RECORD:
+            self._readings.append(Reading(msg.seq, msg.source_ns, msg.recv_ns))
+            return
+        # What the event took when it ran live (dropped with it if it is skipped).
+        readings, self._readings = self._readings, []
+        if msg.topic in _EVENT_RECORDS:
+            self._replay_event(msg, readings)
+            return
+        inp = self.inputs.get(msg.topic)
+        if inp is None:
+            # The subscription does not exist yet (created later by a replayed callback?).
+            self.orphans.setdefault(msg.topic, []).append(msg)
+            return
+        if inp.phase not in _FROM_SHADOW:
+            return  # already switched to its live reader, which carries this message too
+        relayed = bool(msg.flags & FLAG_RELAY)
+        if relayed:
+            self._note_relayed(msg.topic, msg.ident)
+        self.shadow_seen.setdefault(msg.topic, set()).add(msg.ident)
+        if self._is_quarantined(msg.topic, msg.ident):
+            pass
+        elif msg.ident in self.windows[msg.topic]:
+            self.stats['duplicates'] += 1
+        else:
+            info = {
+                'source_timestamp': msg.source_ns,
+                'received_timestamp': msg.recv_ns,
+                'publication_sequence_number': msg.seq,
+                'reception_sequence_number': None,
+            }
+            # Before release every replayed message is already in a sealed segment; relayed
+            # ones are not, so the node logs them as it would a live message.
+            self._apply(inp, msg.data, info, msg.ident, readings, log=relayed)
+            self.stats['replayed'] += 1
+        if relayed:
+            self._maybe_switch(msg.topic)
+
+    # -- live messages ------------------------------------------------------------------------
+
+    def on_live(self, inp: Input, raw: bytes, info: dict[str, Any]) -> None:
+        """A message from the topic's own subscription: applied when the topic is LIVE, else
+        kept until release or the switch."""
+        ident = protocol.message_id(info)
+        if inp.phase is not _LIVE:
+            pending = self.pending_live[inp.topic]
+            pending.append((ident, raw, info))
+            if inp.phase is _HANDOVER:
+                self.handover.setdefault(inp.topic, _HandoverEvidence()).live_seen.add(ident)
+                self._maybe_switch(inp.topic)
+                state = self.handover.get(inp.topic)
+                last_relay = state.last_relay_ns if state is not None else 0
+                silent = time.time_ns() - max(self.released_ns, last_relay)
+                if inp.phase is _HANDOVER and silent > RELAY_SILENCE_NS:
+                    self._error(f'no relay for {inp.topic}; switching it to live unconfirmed')
+                    self.switch(inp.topic)
+            return
+        if ident in self.windows[inp.topic]:
+            # e.g. a transient-local publisher re-sending what the checkpoint already holds
+            self.stats['duplicates'] += 1
+            return
+        if self._is_quarantined(inp.topic, ident):
+            return
+        self._apply(inp, raw, info, ident, log=True)
+
+    # -- release and handover (S4) ------------------------------------------------------------
+
+    def release(self) -> None:
+        """S4 for the inputs: topics on the shadow topic go to HANDOVER, the others LIVE, and
+        what their live readers hold is applied, in receive order (under the runtime's lock)."""
+        self.released_ns = time.time_ns()
+        for inp in self.inputs.values():
+            if inp.phase is TopicPhase.BUFFERED:
+                inp.phase = transition(inp.topic, inp.phase, TopicPhase.LIVE)
+            elif inp.phase is TopicPhase.SHADOW:
+                inp.phase = transition(inp.topic, inp.phase, TopicPhase.HANDOVER)
+        self._drain([t for t, inp in self.inputs.items() if inp.phase is TopicPhase.LIVE])
+
+    def _drain(self, topics: list[str]) -> dict[str, list[int]]:
+        """Apply what the live readers of ``topics`` hold and nobody applied yet, in receive
+        order. Returns, per topic, the sequence numbers left out as passed by the relay
+        (:meth:`_passed_by_relay`)."""
+        passed = {topic: self._passed_by_relay(topic) for topic in topics}
+        backlog = [
+            (info['received_timestamp'], self.inputs[topic], ident, raw, info)
+            for topic in topics
+            for ident, raw, info in self.pending_live[topic]
+            if ident not in passed[topic]
+        ]
+        for topic in topics:
+            self.pending_live[topic] = []
+        backlog.sort(key=lambda item: item[0])
+        for _, inp, ident, raw, info in backlog:
+            if ident in self.windows[inp.topic] or ident in self.shadow_seen.get(inp.topic, ()):
+                self.stats['duplicates'] += 1
+            elif not self._is_quarantined(inp.topic, ident):
+                self._apply(inp, raw, info, ident, log=True)
+        return {topic: sorted(ident[1] for ident in idents)
+                for topic, idents in passed.items() if idents}
+
+    def _passed_by_relay(self, topic: str) -> set[MessageId]:
+        """Live messages of ``topic`` the relay skipped and can no longer deliver in order.
+
+        The live reader and the supervisor's ring are two DDS readers on this host. After an
+        outage longer than the DDS lease the publisher matches each of them again on its own
+        schedule, so the live reader may hold a message the ring never got. If the relay has
+        already delivered a later one of the same publisher, applying it now would apply the
+        publisher's messages out of order; it is left out instead (the supervisor reports it
+        inside its input gap, since its ring never logged it). The live reader's own order is
+        the publisher's, so "later" is the position in its pending list. With more than one
+        publisher the sequence numbers are several publishers' and positions across them mean
+        nothing: those messages are applied as before.
+        """
+        seen = self.shadow_seen.get(topic)
+        pending = self.pending_live[topic]
+        if not seen or not pending or self.inputs[topic].sub.get_publisher_count() != 1:
+            return set()
+        last_relayed = max(
+            (i for i, (ident, _, _) in enumerate(pending) if ident in seen), default=-1
+        )
+        window = self.windows[topic]
+        quarantined = self._quarantined  # skipped anyway, and counted as such
+        return {ident for ident, _, _ in pending[:last_relayed]
+                if ident not in seen and ident not in window
+                and (topic, ident) not in quarantined}
+
+    def _note_relayed(self, topic: str, ident: MessageId) -> None:
+        state = self.handover.setdefault(topic, _HandoverEvidence())
+        state.relayed.append(ident)
+        state.last_relay_ns = time.time_ns()
+
+    def _maybe_switch(self, topic: str) -> None:
+        """Switch a topic to its live reader once that reader is seen to carry the relay.
+
+        Evidence: SWITCH_CONFIRMATIONS relayed messages also arrived live, the latest relayed
+        one among them. Publishers deliver reliably and in order, so from that message on the
+        live reader has everything and the relay has delivered everything before it.
+        """
+        state = self.handover.get(topic)
+        if (state is None or not state.relayed
+                or self.inputs[topic].phase is not TopicPhase.HANDOVER):
+            return
+        confirmed = sum(1 for ident in state.relayed if ident in state.live_seen)
+        if confirmed < SWITCH_CONFIRMATIONS or state.relayed[-1] not in state.live_seen:
+            return
+        self.switch(topic)
+
+    def switch(self, topic: str) -> None:
+        """Take ``topic`` from its live reader from now on (HANDOVER -> LIVE).
+
+        Raises:
+            IllegalPhaseChange: The topic is not in HANDOVER.
+        """
+        inp = self.inputs[topic]
+        with self.lock:
+            inp.phase = transition(topic, inp.phase, TopicPhase.LIVE)
+            passed = self._drain([topic]).get(topic, [])
+            self.shadow_seen.pop(topic, None)
+        self.handover.pop(topic, None)
+        if passed:
+            self.stats['passed_by_relay'] += len(passed)
+            seqs = protocol.seq_ranges(passed)
+            self._error(
+                f'{topic}: {len(passed)} message(s) (publication seq {seqs}) '
+                'reached only the live reader, after the relay had delivered later ones from '
+                'the same publisher: not applied, to keep its order (RORY\'s recorder never '
+                'got them; see the input gap)'
+            )
+        self._status(StatusKind.SWITCHED, topic=topic, passed_by_relay=passed)

@@ -12,7 +12,7 @@ refuses any change not in :data:`PHASE_EDGES`::
 
 A topic the node subscribes to after release starts LIVE.
 
-The :class:`Router` holds that state and decides; the runtime core (attach.py) applies each
+The :class:`Router` holds that state and decides; the runtime core (runtime.py) applies each
 message under its lock (``NodeRuntime._apply``), writes it ahead to the log and replays the
 other logged events (ticks, requests, parameter changes).
 """

@@ -36,8 +36,8 @@ from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import LaserScan
 
-from rory_runtime.attach import NodeRuntime, RuntimeEnv
 from rory_runtime.protocol import Method, Mode
+from rory_runtime.runtime import NodeRuntime, RuntimeEnv
 from rory_runtime.state import CheckpointSpec
 
 CONFIGS = ('bare', 'restart', 'rory')

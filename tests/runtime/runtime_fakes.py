@@ -16,8 +16,9 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import Int64
 
 from rory_runtime import protocol
-from rory_runtime.attach import CheckpointSpec, NodeRuntime, RuntimeEnv
 from rory_runtime.protocol import FLAG_RELAY, Method, Mode
+from rory_runtime.runtime import NodeRuntime, RuntimeEnv
+from rory_runtime.state import CheckpointSpec
 
 
 @dataclass

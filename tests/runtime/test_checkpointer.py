@@ -19,8 +19,9 @@ from rclpy.clock_type import ClockType
 from rclpy.parameter import Parameter
 
 from rory_runtime import codec
-from rory_runtime.attach import CheckpointSpec, NodeRuntime, RuntimeEnv
 from rory_runtime.protocol import Method, Mode
+from rory_runtime.runtime import NodeRuntime, RuntimeEnv
+from rory_runtime.state import CheckpointSpec
 
 
 class _Node:

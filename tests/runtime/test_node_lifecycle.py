@@ -17,9 +17,10 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from rory_runtime import node_lifecycle, protocol
-from rory_runtime.attach import CheckpointSpec, NodeRuntime, RuntimeEnv
 from rory_runtime.log import read_segment
 from rory_runtime.protocol import Method, Mode
+from rory_runtime.runtime import NodeRuntime, RuntimeEnv
+from rory_runtime.state import CheckpointSpec
 from rory_runtime.supervisor.recovery import readings_first
 
 pytestmark = pytest.mark.ros

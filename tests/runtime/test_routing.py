@@ -21,11 +21,11 @@ from runtime_fakes import (
 )
 
 from rory_runtime import protocol, routing
-from rory_runtime.attach import NodeRuntime
 from rory_runtime.errors import RoryError
 from rory_runtime.log import read_segment
 from rory_runtime.protocol import Method, Mode
 from rory_runtime.routing import IllegalPhaseChange, TopicPhase, transition
+from rory_runtime.runtime import NodeRuntime
 
 
 @pytest.fixture

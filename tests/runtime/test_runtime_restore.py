@@ -12,9 +12,9 @@ from rclpy.clock import ROSClock
 from rclpy.time import Time
 
 from rory_runtime import codec
-from rory_runtime.attach import NodeRuntime, RuntimeEnv
 from rory_runtime.freshness import Rule
 from rory_runtime.protocol import Method, Mode
+from rory_runtime.runtime import NodeRuntime, RuntimeEnv
 from rory_runtime.state import CheckpointSpec
 from rory_runtime.store import Checkpoint, CheckpointStore
 

@@ -1,4 +1,4 @@
-"""The runtime core's own events (attach.py): publishers muted until release; timer ticks and
+"""The runtime core's own events (runtime.py): publishers muted until release; timer ticks and
 clock readings logged before their callbacks run, and replayed with the readings they took.
 
 Driven by hand through stand-ins of rclpy's entities (runtime_fakes.py, no DDS participant).
@@ -22,9 +22,9 @@ from runtime_fakes import (
 from std_msgs.msg import Int64
 
 from rory_runtime import protocol
-from rory_runtime.attach import NodeRuntime
 from rory_runtime.log import LogEntry, read_segment
 from rory_runtime.protocol import Method, Mode
+from rory_runtime.runtime import NodeRuntime
 from rory_runtime.supervisor.recovery import readings_first
 
 

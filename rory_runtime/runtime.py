@@ -10,7 +10,7 @@ shadow topic and reports on the status topic (``_status``).
 
 Where each input's messages come from, and when they are applied, is the router's
 (routing.py); checkpoints and the log segments they cut are the checkpointer's
-(checkpointer.py); how a node class gets its runtime is attach.py's.
+(checkpointer.py); how a node class gets its runtime is patching.py's.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ runs").
 :class:`NodeRuntime` holds the one lock that every user callback, applied message and
 checkpoint snapshot runs under. It adopts the node's entities (``adopt_*``: publishers muted
 until release, timers and services held until release and their events logged), restores the
-newest valid checkpoint at start-up (``_restore``), applies each message (``_apply``: written
+newest valid checkpoint at start-up (``restore``), applies each message (``_apply``: written
 ahead to the log, then the user's callback, under the lock), answers the supervisor on the
 shadow topic and reports on the status topic (``_status``).
 
@@ -191,7 +191,8 @@ class NodeRuntime:
         # Per topic, the identities applied last: _apply adds to them, the router skips what
         # they hold, checkpoints copy them, a restore sets them.
         self.windows: dict[str, Window] = {}
-        self._shadow_sub: Subscription | None = None  # the replay topic's reader, until retired
+        # The shadow topic's reader (made at start-up), until retire_shadow destroys it.
+        self.shadow_subscription: Subscription | None = None
         self.held_timers: list[Timer] = []
         # The user's timer callbacks by creation order: a logged tick names its timer by index.
         self.timer_callbacks: list[Callable[[], Any]] = []
@@ -330,7 +331,7 @@ class NodeRuntime:
             return
         self._started = True
         self.node = node
-        self._watch_parameters(node)
+        self.watch_parameters(node)
         change_state = node_lifecycle.change_state_service(node)
         if change_state is not None:
             # Transitions from outside are requests like any service's: held, logged, replayed.
@@ -358,7 +359,7 @@ class NodeRuntime:
             node, 0.0, self._startup, callback_group=self._group
         )
 
-    def _watch_parameters(self, node: Node) -> None:
+    def watch_parameters(self, node: Node) -> None:
         """Route parameter changes from outside through :meth:`_parameters_from_outside`.
 
         rclpy's parameter services call ``set_parameters_atomically`` on the node; an instance
@@ -473,12 +474,12 @@ class NodeRuntime:
         restored: dict[str, Any] | None = None
         refused: list[str] = []
         if self.env.mode == Mode.RECOVER and self.method.checkpoints:
-            restored = self._restore(refused)
+            restored = self.restore(refused)
         restore_ms = (time.perf_counter() - began) * 1000.0
         self.checkpointer.number_from_store()
         if self.method.logs or self.env.gated:
             on_envelope: Any = self._on_envelope  # rclpy's annotation omits (msg, info)
-            self._shadow_sub = Node.create_subscription(
+            self.shadow_subscription = Node.create_subscription(
                 self.node,
                 UInt8MultiArray,
                 protocol.replay_topic(self.env.node_id, self.env.incarnation, self.env.channel),
@@ -516,7 +517,7 @@ class NodeRuntime:
             # restart and checkpoint have nothing to replay: release right away.
             self._release(self.segments.next_number())
 
-    def _restore(self, refused: list[str]) -> dict[str, Any] | None:
+    def restore(self, refused: list[str]) -> dict[str, Any] | None:
         """S3 restore: load the newest checkpoint that passes every check into the node."""
         assert self.node is not None
 
@@ -740,12 +741,12 @@ class NodeRuntime:
         if self.released:
             return
         with self.lock:
-            self._open_gates(next_segment)
+            self.open_gates(next_segment)
             for timer in self.held_timers:
                 timer.reset()
             self.held_timers.clear()
             if self.method.checkpoints or self.method.logs:
-                tick = self._checkpoint_tick if self.method.checkpoints else self._rotate_tick
+                tick = self.checkpoint_tick if self.method.checkpoints else self._rotate_tick
                 Node.create_timer(self.node, self.interval, tick, callback_group=self._group)
         if self.method.checkpoints:
             # On the I/O thread: the first snapshot's copies land in memory already written.
@@ -755,9 +756,10 @@ class NodeRuntime:
             self.stats['clock_fallbacks'] = self.clock.fallbacks
         self._status(StatusKind.RELEASED, **self.stats)
 
-    def _open_gates(self, next_segment: int) -> None:
+    def open_gates(self, next_segment: int) -> None:
         """Unmute, log from ``next_segment`` on, and apply what live readers hold for the topics
-        not taken from the shadow topic (all of them after a fresh start)."""
+        not taken from the shadow topic (all of them after a fresh start): the part of the
+        release (:meth:`_release`) that needs no rclpy node."""
         self.released = True
         self.outputs_open = not self.env.gated
         self.checkpointer.log_from(next_segment)
@@ -765,7 +767,7 @@ class NodeRuntime:
 
     # -- checkpoints --------------------------------------------------------------------------
 
-    def _retire_shadow(self) -> None:
+    def retire_shadow(self) -> None:
         """Destroy the shadow subscription once nothing can come on it any more: released, every
         topic handed over to its live reader, no relayed message waiting for a subscription.
 
@@ -774,19 +776,21 @@ class NodeRuntime:
         a release gate's OPEN, and a recovered process makes its own. Called from the periodic
         tick, never from the subscription's own callback.
         """
-        if (self._shadow_sub is None or not self.released or self.router.shadow_needed()
+        if (self.shadow_subscription is None or not self.released or self.router.shadow_needed()
                 or self.node is None or not self.outputs_open):
             return  # (outputs still muted: the release gate's OPEN comes on it)
-        Node.destroy_subscription(self.node, self._shadow_sub)
-        self._shadow_sub = None
+        Node.destroy_subscription(self.node, self.shadow_subscription)
+        self.shadow_subscription = None
 
     def _rotate_tick(self) -> None:
         # replay method: no checkpoints, but keep segments bounded in size.
-        self._retire_shadow()
+        self.retire_shadow()
         self.checkpointer.rotate_and_close()
 
-    def _checkpoint_tick(self) -> None:
-        self._retire_shadow()
+    def checkpoint_tick(self) -> None:
+        """The checkpoint timer (methods that checkpoint): snapshot the node under the lock,
+        write it on the I/O thread."""
+        self.retire_shadow()
         assert self.node is not None
         persist = self.checkpointer.take(self.node, self.windows)
         if persist is not None:

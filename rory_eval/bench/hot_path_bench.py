@@ -123,7 +123,7 @@ def _loop(config: str, kind: str, events: int, store: Path) -> float:
         else:
             timer = _Timer(sink.on_tick, sink.clock)
             runtime.adopt_timer(timer)  # type: ignore[arg-type]
-        runtime._open_gates(next_segment=1)
+        runtime.open_gates(next_segment=1)
 
         def step(n: int) -> None:
             if kind == 'message':

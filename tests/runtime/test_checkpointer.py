@@ -67,7 +67,7 @@ def test_each_checkpoint_holds_its_instant_while_buffers_pass_from_one_to_the_ne
         for tick in range(1, 4):
             node.grid[tick, tick] = float(tick)
             node.ticks = tick
-            rt._checkpoint_tick()
+            rt.checkpoint_tick()
             # The node changes its grid at once; the checkpoint must not see it.
             node.grid[tick, tick] = -1.0
             _wait_for_io(rt)
@@ -97,7 +97,7 @@ def test_a_clean_exit_takes_a_last_checkpoint_of_the_state_now(tmp_path: Path) -
     rt = _released(tmp_path, node)
     rt.close()  # not released yet: nothing to keep
     assert rt.checkpoints.latest_valid() is None
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     node.ticks = 41
     rt.close()
     latest = rt.checkpoints.latest_valid()
@@ -130,7 +130,7 @@ def test_after_a_callback_raised_no_checkpoint_is_taken_at_exit(tmp_path: Path) 
 
     sub = _Sub()
     rt.adopt_subscription(sub)  # type: ignore[arg-type]
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     info = {'source_timestamp': 1, 'received_timestamp': 1, 'publication_sequence_number': 1,
             'reception_sequence_number': None}
     with pytest.raises(ValueError, match='bad message'):

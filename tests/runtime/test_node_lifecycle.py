@@ -106,7 +106,7 @@ def test_change_state_requests_are_held_logged_and_replayed(
     executor = SingleThreadedExecutor(context=context)
     service = node_lifecycle.change_state_service(node)
     assert not executor.can_execute(service)  # a lifecycle manager waits until release
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     assert executor.can_execute(service)
     executor.shutdown()
     assert _change(node, 'configure') and _change(node, 'activate')

@@ -53,7 +53,7 @@ def _runtime(tmp_path: Path, node: Node, mode: Mode, incarnation: int) -> NodeRu
                      mode=mode, interval=2.0)
     rt = NodeRuntime(CheckpointSpec(('kp',), 'sha256:0'), env)
     rt.node = node
-    rt._watch_parameters(node)
+    rt.watch_parameters(node)
     return rt
 
 
@@ -87,7 +87,7 @@ def test_a_change_from_outside_is_logged_and_replays_with_its_callbacks(
     rt = _runtime(tmp_path, node, Mode.FRESH, 1)
     early = node.set_parameters_atomically([Parameter('gain', value=9.0)])
     assert not early.successful and 'recovering' in early.reason  # isolated until release
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     assert node.set_parameters_atomically([Parameter('gain', value=3.0)]).successful
     assert node.kp == 3.0
     rt.close()
@@ -111,7 +111,7 @@ def test_a_change_a_callback_makes_is_not_logged_as_an_input(
 ) -> None:
     node = Tuned(context)
     rt = _runtime(tmp_path, node, Mode.FRESH, 1)
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     assert rt.clock is not None
     rt.clock.begin_live()  # inside an event, as a message callback would be
     try:
@@ -138,6 +138,6 @@ def test_the_parameter_setting_services_wait_for_release(
     setting = [by_type[SetParameters], by_type[SetParametersAtomically]]
     assert not any(executor.can_execute(srv) for srv in setting)
     assert executor.can_execute(by_type[GetParameters])  # reading waits for nothing
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     assert all(executor.can_execute(srv) for srv in setting)
     executor.shutdown()

@@ -59,7 +59,7 @@ def test_a_service_is_out_of_the_executors_wait_set_until_release(
     rt, srv, _ = _served(tmp_path, context, Mode.FRESH, 1)
     executor = SingleThreadedExecutor(context=context)
     assert not executor.can_execute(srv)  # a request waits in the service's queue
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     assert executor.can_execute(srv)
     executor.shutdown()
 
@@ -68,7 +68,7 @@ def test_requests_are_logged_and_replay_in_order_without_a_response(
     tmp_path: Path, context: Context,
 ) -> None:
     rt, srv, handler = _served(tmp_path, context, Mode.FRESH, 1)
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     for wanted in (True, False, True):
         response = srv.callback(SetBool.Request(data=wanted), SetBool.Response())
         assert response.success

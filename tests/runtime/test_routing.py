@@ -51,7 +51,7 @@ def test_a_recovered_topic_goes_from_the_shadow_topic_through_the_handover_to_li
     rt = make_runtime(tmp_path, Mode.RECOVER)
     adopt_numbers(rt, applied)
     assert rt.router.phase('/numbers') is TopicPhase.SHADOW
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     assert rt.router.phase('/numbers') is TopicPhase.HANDOVER
     rt.router.switch('/numbers')
     assert rt.router.phase('/numbers') is TopicPhase.LIVE
@@ -65,10 +65,10 @@ def test_a_fresh_topic_waits_buffered_and_one_made_after_release_starts_live(
     rt = make_runtime(tmp_path, Mode.FRESH)
     adopt_numbers(rt, applied)
     assert rt.router.phase('/numbers') is TopicPhase.BUFFERED
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     assert rt.router.phase('/numbers') is TopicPhase.LIVE
     recovered = make_runtime(tmp_path / 'recovered', Mode.RECOVER)
-    recovered._open_gates(next_segment=1)
+    recovered.open_gates(next_segment=1)
     adopt_numbers(recovered, applied)
     assert recovered.router.phase('/numbers') is TopicPhase.LIVE
 
@@ -81,7 +81,7 @@ def test_fresh_start_buffers_until_release_then_applies_in_receive_order(
     for n in (1, 2, 3):
         deliver_live(sub, n)
     assert applied == []  # isolated until the ring is armed
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     deliver_live(sub, 4)
     assert applied == [1, 2, 3, 4]
 
@@ -106,7 +106,7 @@ def test_handover_switches_after_confirmations_without_loss_or_repeats(
     sub = adopt_numbers(rt, applied)
     for n in (1, 2):
         rt.router.from_shadow(shadow(n))
-    rt._open_gates(next_segment=5)
+    rt.open_gates(next_segment=5)
     # live and relayed copies interleave; the live reader runs ahead of the relay
     for n in (3, 4, 5, 6):
         deliver_live(sub, n)
@@ -135,7 +135,7 @@ def test_a_long_recovery_applies_nothing_twice_however_many_live_messages_wait(
     for n in range(1, 151):
         deliver_live(sub, n)
         rt.router.from_shadow(shadow(n))
-    rt._open_gates(next_segment=5)
+    rt.open_gates(next_segment=5)
     for n in range(151, 156):
         deliver_live(sub, n)
     for n in range(151, 156):
@@ -150,7 +150,7 @@ def _outage_handover(rt: NodeRuntime, sub: FakeSubscription) -> None:
     node's live reader was matched again one message earlier and got 5 on."""
     for n in (1, 2, 3):
         rt.router.from_shadow(shadow(n))
-    rt._open_gates(next_segment=5)
+    rt.open_gates(next_segment=5)
     for n in (5, 6, 7, 8, 9):
         deliver_live(sub, n)
     for n in (6, 7, 8):
@@ -190,7 +190,7 @@ def test_relayed_messages_are_logged_replayed_ones_are_not(
     rt = make_runtime(tmp_path, Mode.RECOVER)
     adopt_numbers(rt, applied)
     rt.router.from_shadow(shadow(1))  # from a sealed segment: already in the log
-    rt._open_gates(next_segment=7)
+    rt.open_gates(next_segment=7)
     rt.router.from_shadow(shadow(2, relay=True))  # recorded after RELEASE: only the node logs it
     rt.close()
     logged = list(read_segment(rt.segments.path(7)))
@@ -205,7 +205,7 @@ def test_silent_relay_switches_the_topic_to_live_instead_of_stalling(
     rt = make_runtime(tmp_path, Mode.RECOVER)
     sub = adopt_numbers(rt, applied)
     rt.router.from_shadow(shadow(1))
-    rt._open_gates(next_segment=3)
+    rt.open_gates(next_segment=3)
     deliver_live(sub, 1)  # already applied from the shadow topic: skipped when drained
     deliver_live(sub, 2)
     assert rt.router.phase('/numbers') is TopicPhase.LIVE
@@ -220,7 +220,7 @@ def test_live_duplicate_of_an_absorbed_message_is_skipped_after_release(
     rt = make_runtime(tmp_path, Mode.RECOVER, Method.CHECKPOINT)
     sub = adopt_numbers(rt, applied)
     rt.windows['/numbers'].add((9, 9))
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     deliver_live(sub, 9)
     deliver_live(sub, 10)
     assert applied == [10]
@@ -255,26 +255,26 @@ def test_the_shadow_subscription_is_retired_only_once_nothing_can_come_on_it(
         sub = adopt_numbers(rt, applied)
         shadow_sub = node.create_subscription(UInt8MultiArray, '/rory/n/replay',
                                               lambda m: None, QoSProfile(depth=10))
-        rt.node, rt._shadow_sub = node, shadow_sub
+        rt.node, rt.shadow_subscription = node, shadow_sub
 
         def present() -> bool:
             return any(s is shadow_sub for s in node.subscriptions)
 
         rt.router.from_shadow(shadow(1))
-        rt._retire_shadow()
+        rt.retire_shadow()
         assert present()  # not released yet
-        rt._open_gates(next_segment=3)
-        rt._retire_shadow()
+        rt.open_gates(next_segment=3)
+        rt.retire_shadow()
         assert present()  # still taken from the relay
         assert rt.router.phase('/numbers') is TopicPhase.HANDOVER
         rt.router.orphans['/later'] = [shadow(9)]
         rt.router.switch('/numbers')
-        rt._retire_shadow()
+        rt.retire_shadow()
         assert present()  # a relayed message still waits for its subscription
         rt.router.orphans.clear()
-        rt._retire_shadow()
-        assert not present() and rt._shadow_sub is None
-        rt._retire_shadow()  # idempotent
+        rt.retire_shadow()
+        assert not present() and rt.shadow_subscription is None
+        rt.retire_shadow()  # idempotent
         deliver_live(sub, 2)
         assert applied == [1, 2]
     finally:

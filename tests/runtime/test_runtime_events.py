@@ -39,7 +39,7 @@ def test_publishers_are_muted_until_release(tmp_path: Path) -> None:
     pub = _Pub()
     rt.adopt_publisher(pub)  # type: ignore[arg-type]
     pub.publish('during replay')
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     pub.publish('after release')
     assert sent == ['after release']
     assert rt.stats['muted'] == 1
@@ -91,7 +91,7 @@ def test_ticks_and_clock_readings_are_logged_and_replay_in_order_with_the_record
     rt = make_runtime(tmp_path, Mode.FRESH)
     sub, timer = _clocked_node(rt, clock, live)
     assert timer.canceled  # held until release
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     timer.reset()
     for n in (1, 2, 3):
         _set_sim(clock, n * 1_000_000)
@@ -142,7 +142,7 @@ def test_without_logging_methods_clocks_and_ticks_are_left_alone(tmp_path: Path)
     clock = _sim_clock(42)
     rt = make_runtime(tmp_path, Mode.FRESH, Method.CHECKPOINT)
     sub, timer = _clocked_node(rt, clock, seen)
-    rt._open_gates(next_segment=1)
+    rt.open_gates(next_segment=1)
     deliver_live(sub, 1)
     timer.callback()
     assert rt.clock is None

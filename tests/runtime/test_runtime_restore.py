@@ -64,7 +64,7 @@ def _restore(tmp_path: Path, on_stale: str, node: _Node | None = None,
     runtime = NodeRuntime(spec, env)
     runtime.node = node or _Node()  # type: ignore[assignment]
     try:
-        return runtime.node, runtime._restore([])  # type: ignore[return-value]
+        return runtime.node, runtime.restore([])  # type: ignore[return-value]
     finally:
         runtime.close()
 
@@ -135,7 +135,7 @@ def test_checkpoint_of_other_code_is_refused_and_the_older_one_restored(tmp_path
     runtime = NodeRuntime(CheckpointSpec(('total',), 'sha256:current'), env)
     runtime.node = _Node()  # type: ignore[assignment]
     refused: list[str] = []
-    restored = runtime._restore(refused)
+    restored = runtime.restore(refused)
     assert restored is not None and restored['seq'] == 1
     assert runtime.node.total == 10  # type: ignore[attr-defined]
     assert len(refused) == 1 and 'different version of the instrumented code' in refused[0]
@@ -155,7 +155,7 @@ def test_no_valid_checkpoint_restores_nothing_and_says_why(tmp_path: Path) -> No
     runtime = NodeRuntime(CheckpointSpec(('total',), 'sha256:current'), env)
     runtime.node = _Node()  # type: ignore[assignment]
     refused: list[str] = []
-    assert runtime._restore(refused) is None
+    assert runtime.restore(refused) is None
     assert runtime.node.total == 0  # type: ignore[attr-defined]
     assert 'checksum' in refused[0]
     runtime.close()

@@ -116,6 +116,11 @@ class Target:
         return [sys.executable, str(self.node), *self.arguments(world), *extra]
 
 
+# Navigation: time to the world's default goal at ~0.4 m/s, start-up and a margin to settle
+# (rory_eval/quality/navigator.py measured these).
+NAVIGATION_SECONDS = {'office_small': 55.0, 'workshop': 50.0, 'real_room': 30.0}
+"""Sim seconds a navigation run lasts per world (the navigator and the localizers it drives)."""
+
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 POSE_WITH_COVARIANCE_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 

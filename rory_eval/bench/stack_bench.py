@@ -89,7 +89,7 @@ def _readers(config: str) -> dict[str, int]:
 def run_once(config: str, world: str, out: Path, domain: int,
              strikes: Sequence[Strike] = ()) -> dict[str, Any]:
     """One run of the stack, bare or under one supervisor; usage per process tree."""
-    from rory_eval.quality.navigator import goal_message
+    from rory_eval.harness.goals import goal_message
     from sim.worlds import get_world
 
     if out.exists():

@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from rory_eval.targets import TARGETS, Kind, Target
+from rory_eval.targets import NAVIGATION_SECONDS, TARGETS, Kind, Target
 
 METHODS = ('restart', 'checkpoint', 'replay', 'rory')
 WORLDS = ('office_small', 'workshop', 'real_room')
@@ -33,9 +33,6 @@ BARE = 'bare'  # the reference: the original node, no supervisor
 CRASH_AT = 9.0  # sim s, the paper's crash time
 CHECKPOINT_INTERVAL = 2.0  # s, the paper's interval
 MAPPING_SECONDS = 30.0  # sim s of route for mapping and the 3D model
-# Navigation: time to the world's default goal at ~0.4 m/s, start-up and a margin to settle
-# (rory_eval/quality/navigator.py measured these).
-NAVIGATION_SECONDS = {'office_small': 55.0, 'workshop': 50.0, 'real_room': 30.0}
 
 
 @dataclass(frozen=True)

@@ -154,7 +154,8 @@ def _execute(spec: RunSpec, out: Path, domain_id: int, instrumented: Path,
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import String
 
-    from rory_eval.quality.navigator import goal_message, relay_argv
+    from rory_eval.harness.goals import goal_message
+    from rory_eval.quality.navigator import relay_argv
     from sim.worlds import get_world
 
     target = spec.spec

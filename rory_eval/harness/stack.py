@@ -155,8 +155,8 @@ def run_stack(world: str, out: Path, *, domain_id: int, strikes: Sequence[Strike
     """One run of the stack; every process is reaped."""
     from std_msgs.msg import Bool, String
 
-    from rory_eval.evaluation.plan import NAVIGATION_SECONDS
-    from rory_eval.quality.navigator import goal_message
+    from rory_eval.harness.goals import goal_message
+    from rory_eval.targets import NAVIGATION_SECONDS
     from sim.worlds import get_world
 
     out = out.resolve()

@@ -177,7 +177,8 @@ def run_navigation(spec: Target, world: str, out: Path, *, domain_id: int,
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from std_msgs.msg import String
 
-    from rory_eval.quality.navigator import DURATIONS, SETTLE_XY, SETTLE_YAW, goal_message
+    from rory_eval.harness.goals import goal_message
+    from rory_eval.quality.navigator import DURATIONS, SETTLE_XY, SETTLE_YAW
     from sim.worlds import get_world
 
     w = get_world(world)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rory_eval.harness.goals import goal_message
 from rory_eval.harness.simrun import SimRun
 from rory_eval.targets import TARGETS
 
@@ -78,22 +79,6 @@ class GoalRun:
 HEADER = (f'{"world":12s} {"goal":15s} {"reached":>7s} {"t (s)":>6s} {"err m":>7s} '
           f'{"err deg":>6s} {"coll":>4s} {"driven":>7s} {"A*":>7s} {"ratio":>5s} '
           f'{"plans":>5s} {"CPU%":>6s} {"RSS MB":>6s}')
-
-
-def goal_message(world: str, goal: str) -> Any:
-    """The world's named goal as a geometry_msgs/PoseStamped in ``map``, stamped 0."""
-    from geometry_msgs.msg import PoseStamped
-
-    from sim.worlds import get_world
-
-    pose = get_world(world).goals[goal]
-    msg = PoseStamped()
-    msg.header.frame_id = 'map'
-    msg.pose.position.x = pose.x
-    msg.pose.position.y = pose.y
-    msg.pose.orientation.z = math.sin(pose.yaw / 2.0)
-    msg.pose.orientation.w = math.cos(pose.yaw / 2.0)
-    return msg
 
 
 def relay_argv(seed: int = 1, noise: float = 0.02) -> list[str]:

@@ -8,11 +8,10 @@ from rory_eval.evaluation.plan import (
     BARE,
     MAPPING_SECONDS,
     METHODS,
-    NAVIGATION_SECONDS,
     RunSpec,
     build_plan,
 )
-from rory_eval.targets import TARGETS
+from rory_eval.targets import NAVIGATION_SECONDS, TARGETS
 
 
 def test_every_cell_has_a_reference_and_a_crash_run_per_method() -> None:

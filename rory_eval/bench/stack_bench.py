@@ -5,14 +5,17 @@ six run bare, side by side in the simulator; then crashes in that stack.
 
 Each run starts the simulator (depth camera on, the navigator driving to the world's goal on
 AMCL's pose) and the six targets: grid_slam, graph_slam, depth_mapper, amcl, lama_local,
-navigator. ``bare``: each as its own process, as a user runs them. ``rory``: one ``rory
-supervise`` config with all six (method rory, warm standby, RORY's DDS profile). Bare and rory
+navigator. ``bare``: each as its own process, as a user runs them (ROS's default DDS settings:
+shared memory and UDPv4 on the host). ``rory``: one ``rory supervise`` config with all six
+(method rory, warm standby, RORY's DDS profile: UDPv4 on 127.0.0.1 only, rory_runtime/dds).
+The simulator runs with RORY's profile in both and talks to either over UDPv4. Bare and rory
 alternate, the order swapped from run to run. CPU is each process tree's *steady* figure (the
 second half of the run, every process up) in % of one core, summed; PSS is summed at the end;
 the simulator is left out of both.
 
-``--configs`` adds the other methods, in the order they add mechanisms, so that each one's
-cost is read apart (issue 22's goal 3): ``restart`` is the runtime in each node and the
+``--configs`` adds the other configurations, in the order they add mechanisms, so that each
+one's cost is read apart (issue 22's goal 3): ``bare_udp`` is the six bare under RORY's DDS
+profile (what the profile costs); ``restart`` is the runtime in each node and the
 supervisor with nothing kept; ``checkpoint`` adds checkpoints; ``replay`` the write-ahead log
 and the supervisor's ring, no checkpoints; ``rory`` both and the warm standby. All configurations
 of a run go in turn, the order reversed from run to run.
@@ -43,8 +46,12 @@ from rory_eval.harness.stack import GOAL_XY, Strike, Striker, instrument
 from rory_eval.targets import TARGETS
 
 STACK = ('grid_slam', 'graph_slam', 'depth_mapper', 'amcl', 'lama_local', 'navigator')
-CONFIGS = ('bare', 'restart', 'checkpoint', 'replay', 'rory')
-"""bare, then the methods in the order they add mechanisms (the module's docstring)."""
+CONFIGS = ('bare', 'bare_udp', 'restart', 'checkpoint', 'replay', 'rory')
+"""bare, then in the order they add mechanisms (the module's docstring)."""
+PLAIN_DDS: dict[str, str | None] = {
+    'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST', 'FASTRTPS_DEFAULT_PROFILES_FILE': None,
+    'FASTDDS_DEFAULT_PROFILES_FILE': None, 'FASTDDS_BUILTIN_TRANSPORTS': None}
+"""What a user's shell gives a bare node: ROS's defaults on this host."""
 LOGGING = frozenset({'replay', 'rory'})
 """The configurations whose supervisor keeps a ring of the nodes' inputs."""
 DURATION = 40.0  # sim s: the navigator's 30 s to real_room's goal, and then some
@@ -96,9 +103,9 @@ def run_once(config: str, world: str, out: Path, domain: int,
         shutil.rmtree(out)
     run = SimRun(world, out, domain_id=domain, duration=DURATION, driver='none',
                  wait_for=_readers(config), sim_args=['--start-delay', '1.0'])
-    if config == 'bare':
+    if config in ('bare', 'bare_udp'):
         for name, argv in bare_commands(world).items():
-            run.add_node(name, argv)
+            run.add_node(name, argv, env=PLAIN_DDS if config == 'bare' else None)
     else:
         run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
                                     str(stack_config(world, out, config))])

@@ -203,10 +203,17 @@ class SimRun:
         self._done = False
 
     def add_node(self, name: str, argv: Sequence[str], *, cwd: Path | None = None,
-                 env: dict[str, str] | None = None) -> None:
-        """A process to start before the simulator; its output goes to OUT/NAME.log."""
+                 env: dict[str, str | None] | None = None) -> None:
+        """A process to start before the simulator; its output goes to OUT/NAME.log.
+
+        ``env`` changes the run's environment for this process; a name given None is removed.
+        """
         node_env = dict(self.env)
-        node_env.update(env or {})
+        for key, value in (env or {}).items():
+            if value is None:
+                node_env.pop(key, None)
+            else:
+                node_env[key] = value
         self._nodes.append(_Node(name, list(argv), cwd or REPO, node_env))
 
     def record(self, topic: str, msg_type: Any, *, qos: QoSProfile | int = 100,

@@ -72,7 +72,10 @@ ENV_SECRET: Final = 'RORY_SECRET'  # hex
 ENV_CHANNEL: Final = 'RORY_CHANNEL'
 DEFAULT_CHANNEL: Final = '/rory'
 
-NODE_ID_RE: Final = re.compile(r'[A-Za-z][A-Za-z0-9_]*')  # use fullmatch
+# A node's id: its name in the supervisor config, its folder in the store (store.py, log.py)
+# and a part of its topics' names (/rory/<node>/status), so a letter, then letters, digits or
+# _ (what a ROS name allows, and no path). Always used with fullmatch.
+NODE_ID_RE: Final = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
 
 # Publisher sequence numbers are stored in MCAP's u32 ``sequence`` field; identities use the
 # same truncation everywhere so that a live message and its logged copy compare equal.

@@ -41,6 +41,7 @@ import yaml
 
 from .errors import CheckpointError, ConfigError, LogError, RoryError
 from .log import SegmentStore, read_segment
+from .protocol import NODE_ID_RE
 from .store import Checkpoint, CheckpointStore
 from .supervisor.poison import EVIDENCE_SUFFIX
 
@@ -103,7 +104,7 @@ def make_bundle(store: Path, node: str, out: Path, config: Path | None = None) -
     Raises:
         BundleError: No such store or node, no valid checkpoint, or a bad config.
     """
-    if not (store / node).is_dir():
+    if not NODE_ID_RE.fullmatch(node) or not (store / node).is_dir():
         raise BundleError(f'{store}: no node {node!r} in this store')
     events = _events_of(store, node)
     refused: list[str] = []

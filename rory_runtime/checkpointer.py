@@ -24,7 +24,7 @@ from rclpy.node import Node
 from . import codec, event_clock, freshness, node_lifecycle, node_parameters
 from .errors import CheckpointError, CodecError, LogError
 from .log import SegmentStore, SegmentWriter
-from .protocol import Method, StatusKind
+from .protocol import CheckpointStatus, Method, Status
 from .state import CheckpointSpec, read_state
 from .store import Checkpoint, CheckpointStore
 from .threads import name_this_thread
@@ -94,7 +94,7 @@ class Checkpointer:
     def __init__(
         self, spec: CheckpointSpec, method: Method, node_id: str, incarnation: int,
         lock: threading.RLock, checkpoints: CheckpointStore, segments: SegmentStore, *,
-        error: Callable[[str], None], status: Callable[..., None],
+        error: Callable[[str], None], status: Callable[[Status], None],
     ) -> None:
         self.spec = spec
         self.method = method
@@ -223,13 +223,12 @@ class Checkpointer:
             # The older checkpoint kept needs the segments after its cut; older ones go.
             if self.method.logs and prune_through is not None:
                 self.segments.drop_through(prune_through)
-            self._status(
-                StatusKind.CHECKPOINT,
+            self._status(CheckpointStatus(
                 seq=ckpt.seq,
                 cut=cut,
-                bytes=len(blob),
+                size=len(blob),
                 stall_ms=stall_ms,
                 total_ms=(time.perf_counter() - began) * 1000.0,
-            )
+            ))
 
         return persist

@@ -87,7 +87,12 @@ import msgpack
 import numpy as np
 
 from rory_runtime.errors import CodecError
-from rory_runtime.msgtypes import MessageTypeError, get_message_class, message_type_name
+from rory_runtime.msgtypes import (
+    TYPE_NAME_RE,
+    MessageTypeError,
+    get_message_class,
+    message_type_name,
+)
 
 EXT_TUPLE: Final = 1
 EXT_SET: Final = 2
@@ -114,9 +119,6 @@ _BIT_GENERATORS: Final[dict[str, Callable[[], np.random.BitGenerator]]] = {
     'Philox': np.random.Philox,
     'SFC64': np.random.SFC64,
 }
-
-ROS_TYPE_RE: Final = re.compile(r'[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*')
-"""Accepted ROS 2 message type names; checked before anything is imported."""
 
 _NUMERIC_KINDS: Final = frozenset('biufc')
 _DTYPE_RE: Final = re.compile(r'[<>|][biufc][0-9]{1,2}')
@@ -990,7 +992,8 @@ def _decode_npscalar(data: bytes) -> object:
 
 def _decode_rosmsg(data: bytes) -> object:
     type_name, cdr = _unpack_list(data, 'ROS message', 2)
-    if type(type_name) is not str or not ROS_TYPE_RE.fullmatch(type_name):
+    # The name is checked before anything is imported for it.
+    if type(type_name) is not str or not TYPE_NAME_RE.fullmatch(type_name):
         msg = f'bad ROS message type name {type_name!r}'
         raise _Malformed(msg)
     if type(cdr) is not bytes:

@@ -31,6 +31,7 @@ import numpy as np
 from . import codec, node_parameters
 from .errors import CheckpointError, CodecError, LogError
 from .log import SegmentStore, read_segment
+from .protocol import NODE_ID_RE
 from .store import Checkpoint, CheckpointStore
 
 EXT_NAMES = {
@@ -65,7 +66,7 @@ def nodes_in(store: Path) -> list[str]:
                            'supervisor config, .rory by default)')
     return sorted(
         p.name for p in store.iterdir()
-        if p.is_dir() and not p.name.startswith('.')
+        if p.is_dir() and NODE_ID_RE.fullmatch(p.name)
         and ((p / 'checkpoints').is_dir() or (p / 'log').is_dir())
     )
 

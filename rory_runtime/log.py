@@ -64,6 +64,7 @@ from rosbags.typesys import Stores, TypesysError, get_typestore
 
 from rory_runtime.errors import LogError
 from rory_runtime.fsutil import make_private_dir
+from rory_runtime.protocol import NODE_ID_RE, SEQ_MASK
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -87,10 +88,8 @@ _MESSAGE_FIELDS: Final = struct.Struct('<HIQQ')  # channel id, sequence, log_tim
 _MESSAGE_HEAD: Final = struct.Struct('<BQHIQQ')  # both of the above, for writing in one go
 _U16: Final = struct.Struct('<H')
 _U32: Final = struct.Struct('<I')
-_SEQ_MASK: Final = 0xFFFFFFFF
 _SEGMENT_RE: Final = re.compile(r'[0-9]{10}')
 _MAX_NUMBER: Final = 10**10 - 1  # directory names hold ten digits
-_NODE_RE: Final = re.compile(r'[A-Za-z0-9_][A-Za-z0-9_.-]*')
 
 
 @cache
@@ -435,7 +434,7 @@ class SegmentWriter:
         if connection is None:
             connection = self._add_connection(topic, msgtype, offered_qos)
         try:
-            self._bag.write_identified(connection, recv_ns, source_ns, seq & _SEQ_MASK, data)
+            self._bag.write_identified(connection, recv_ns, source_ns, seq & SEQ_MASK, data)
         except struct.error:
             msg = f'topic {topic!r}: times must be u64, got recv {recv_ns}, source {source_ns}'
             raise LogError(self.path, msg) from None
@@ -701,8 +700,8 @@ class SegmentStore:
     """
 
     def __init__(self, root: Path, node: str) -> None:
-        if not _NODE_RE.fullmatch(node):
-            msg = f'node id {node!r} cannot be used as a directory name'
+        if not NODE_ID_RE.fullmatch(node):
+            msg = f'{node!r} is not a node id (a letter, then letters, digits or _)'
             raise ValueError(msg)
         self.node = node
         self.dir = Path(root) / node / 'log'

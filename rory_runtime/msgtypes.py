@@ -19,7 +19,9 @@ from typing import Any, Final
 from .errors import RoryError
 
 TYPE_NAME_RE: Final = re.compile(r'([a-z][a-z0-9_]*)/msg/([A-Z][A-Za-z0-9]*)')
-"""'pkg/msg/Name'; always used with fullmatch."""
+"""A ROS 2 message type name, 'pkg/msg/Name' (groups: package, name); always used with
+fullmatch. The one rule for it: a ROS message in a checkpoint (codec.py) and a safe-state type
+in the supervisor config are checked against it too."""
 
 _INT_RANGES: Final = {
     'int8': (-(2**7), 2**7 - 1),

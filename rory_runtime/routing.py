@@ -35,7 +35,7 @@ from . import protocol
 from .errors import RoryError
 from .event_clock import Reading
 from .msgtypes import type_name_of
-from .protocol import FLAG_RELAY, InputSpec, MessageId, StatusKind
+from .protocol import FLAG_RELAY, InputSpec, MessageId, Status, SwitchedStatus
 
 SWITCH_CONFIRMATIONS = 3
 """Relayed messages that must also arrive live before a topic switches to its live reader."""
@@ -182,7 +182,7 @@ class Router:
         self, *, recovering: bool, quarantined: frozenset[tuple[str, MessageId]],
         lock: threading.RLock, windows: dict[str, Window], stats: dict[str, int], apply: Apply,
         replay_event: Callable[[protocol.Msg, list[Reading]], None],
-        error: Callable[[str], None], status: Callable[..., None],
+        error: Callable[[str], None], status: Callable[[Status], None],
     ) -> None:
         self._recovering = recovering
         self._quarantined = quarantined
@@ -446,4 +446,4 @@ class Router:
                 'the same publisher: not applied, to keep its order (RORY\'s recorder never '
                 'got them; see the input gap)'
             )
-        self._status(StatusKind.SWITCHED, topic=topic, passed_by_relay=passed)
+        self._status(SwitchedStatus(topic=topic, passed_by_relay=tuple(passed)))

@@ -73,10 +73,17 @@ from .protocol import (
     ENV_QUARANTINE,
     ENV_SECRET,
     ENV_STORE,
+    ErrorStatus,
+    HelloStatus,
+    InputsStatus,
     MessageId,
     Method,
     Mode,
-    StatusKind,
+    OpenedStatus,
+    ReleasedStatus,
+    RestoredCheckpoint,
+    Status,
+    SyncedStatus,
 )
 from .qos import offered_qos
 from .routing import Input, Router, Window
@@ -254,8 +261,8 @@ class NodeRuntime:
             return  # adopted already
         if self._hello_sent:
             # Made after start-up (a lifecycle node's on_configure): the ring must read it too.
-            self._status(StatusKind.INPUTS,
-                         inputs=[i.spec.to_json() for i in self.router.inputs.values()])
+            self._status(InputsStatus(
+                inputs=tuple(i.spec for i in self.router.inputs.values())))
 
     def adopt_publisher(self, pub: Publisher) -> None:
         """Mute a user publisher while the node is isolated."""
@@ -471,7 +478,7 @@ class NodeRuntime:
             self.node.destroy_timer(self._startup_timer)
             self._startup_timer = None
         began = time.perf_counter()
-        restored: dict[str, Any] | None = None
+        restored: RestoredCheckpoint | None = None
         refused: list[str] = []
         if self.env.mode == Mode.RECOVER and self.method.checkpoints:
             restored = self.restore(refused)
@@ -489,15 +496,14 @@ class NodeRuntime:
                 callback_group=self._group,
                 event_callbacks=_without_events_sub(),
             )
-        self._status(
-            StatusKind.HELLO,
-            mode=self.env.mode.value,
-            method=self.method.value,
+        self._status(HelloStatus(
+            mode=self.env.mode,
+            method=self.method,
             pid=os.getpid(),
             manifest=self.spec.manifest,
-            inputs=[inp.spec.to_json() for inp in self.router.inputs.values()],
+            inputs=tuple(inp.spec for inp in self.router.inputs.values()),
             restored=restored,
-            refused=refused,
+            refused=tuple(refused),
             restore_ms=restore_ms,
             process_start_ns=_process_start_ns(),
             interval=self.interval,
@@ -507,9 +513,9 @@ class NodeRuntime:
             dds_profile=(os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
                          or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')),
             dds_transports=os.environ.get('FASTDDS_BUILTIN_TRANSPORTS'),
-        )
+        ))
         self._hello_sent = True
-        if restored is not None and restored['freshness']['refused']:
+        if restored is not None and restored.freshness['refused']:
             # A stale variable whose rule is refuse: the node must not run on what it has;
             # the supervisor ends this process and holds the safe state.
             return
@@ -517,7 +523,7 @@ class NodeRuntime:
             # restart and checkpoint have nothing to replay: release right away.
             self._release(self.segments.next_number())
 
-    def restore(self, refused: list[str]) -> dict[str, Any] | None:
+    def restore(self, refused: list[str]) -> RestoredCheckpoint | None:
         """S3 restore: load the newest checkpoint that passes every check into the node."""
         assert self.node is not None
 
@@ -534,8 +540,9 @@ class NodeRuntime:
                 return None
             verdict = self._judge(ckpt)
             if verdict.refused:
-                return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns,
-                        'parameters': [], 'lifecycle': None, 'freshness': verdict.to_json()}
+                return RestoredCheckpoint(seq=ckpt.seq, cut=ckpt.cut, created_ns=ckpt.created_ns,
+                                          parameters=(), lifecycle=None,
+                                          freshness=verdict.to_json())
             try:
                 with self.lock:
                     # Parameters first: their callbacks may set attributes; the key variables
@@ -558,10 +565,10 @@ class NodeRuntime:
                     size = protocol.window_size(inp.spec) if inp else len(idents) + 64
                     self.windows[topic] = Window(size, ((s, q) for s, q in idents))
                 self.checkpointer.resume_after(ckpt.cut)
-            return {'seq': ckpt.seq, 'cut': ckpt.cut, 'created_ns': ckpt.created_ns,
-                    'parameters': restored_parameters,
-                    'lifecycle': node_lifecycle.state_of(self.node) or None,
-                    'freshness': verdict.to_json()}
+            return RestoredCheckpoint(seq=ckpt.seq, cut=ckpt.cut, created_ns=ckpt.created_ns,
+                                      parameters=tuple(restored_parameters),
+                                      lifecycle=node_lifecycle.state_of(self.node) or None,
+                                      freshness=verdict.to_json())
 
     def _judge(self, ckpt: Checkpoint) -> freshness.Verdict:
         """Which of the checkpoint's variables are fresh enough to restore (freshness.py)."""
@@ -633,7 +640,7 @@ class NodeRuntime:
         if isinstance(envelope, protocol.Sync):
             counts = {topic: inp.sub.get_publisher_count()
                       for topic, inp in self.router.inputs.items()}
-            self._status(StatusKind.SYNCED, nonce=envelope.nonce, live_publishers=counts)
+            self._status(SyncedStatus(nonce=envelope.nonce, live_publishers=counts))
         elif isinstance(envelope, protocol.Msg):
             self.router.from_shadow(envelope)
         elif isinstance(envelope, protocol.Open):
@@ -645,7 +652,7 @@ class NodeRuntime:
         """The release gate opened: what the node publishes from now on goes out."""
         if self.released:  # (again if OPEN came twice: the supervisor resends until it hears)
             self.outputs_open = True
-            self._status(StatusKind.OPENED, muted=self.stats['muted'])
+            self._status(OpenedStatus(muted=self.stats['muted']))
 
     def _replay_event(self, msg: protocol.Msg, readings: list[Reading]) -> None:
         """A logged tick, request or parameter change from the shadow topic, run again with the
@@ -754,7 +761,7 @@ class NodeRuntime:
                 functools.partial(self.checkpointer.prime_array_pool, self.node))
         if self.clock is not None:
             self.stats['clock_fallbacks'] = self.clock.fallbacks
-        self._status(StatusKind.RELEASED, **self.stats)
+        self._status(ReleasedStatus(**self.stats))
 
     def open_gates(self, next_segment: int) -> None:
         """Unmute, log from ``next_segment`` on, and apply what live readers hold for the topics
@@ -798,13 +805,11 @@ class NodeRuntime:
 
     # -- reporting ----------------------------------------------------------------------------
 
-    def _status(self, kind: StatusKind, **fields: Any) -> None:
+    def _status(self, status: Status) -> None:
         if self._status_pub is None:
             return
-        text = protocol.encode_status(
-            kind, self.env.node_id, self.env.incarnation, key=self.env.secret,
-            sent_ns=time.time_ns(), **fields
-        )
+        text = protocol.encode_status(status, self.env.node_id, self.env.incarnation,
+                                      key=self.env.secret, sent_ns=time.time_ns())
         if not self._closing:
             self._status_pub.publish(String(data=text))
             return
@@ -820,7 +825,7 @@ class NodeRuntime:
             self.node.get_logger().error(f'[rory] {message}')
         else:
             _logger.error('[rory] %s', message)
-        self._status(StatusKind.ERROR, message=message)
+        self._status(ErrorStatus(message=message))
 
     def close(self) -> None:
         """Finish background I/O and seal the open segment, so a clean exit leaves complete

@@ -39,6 +39,7 @@ import msgpack
 
 from rory_runtime.errors import CheckpointError
 from rory_runtime.fsutil import fsync_dir, make_private_dir
+from rory_runtime.protocol import NODE_ID_RE
 
 MAGIC: Final = b'RORYCKPT'
 FORMAT_VERSION: Final = 1
@@ -48,7 +49,6 @@ _DIGEST_LEN: Final = 32
 _MIN_LEN: Final = _PREFIX.size + _DIGEST_LEN
 _NAME_RE: Final = re.compile(r'([0-9]{10})\.ckpt')
 _TMP_SUFFIX: Final = '.tmp'
-_NODE_RE: Final = re.compile(r'[A-Za-z0-9_][A-Za-z0-9_.-]*')
 _U64: Final = 2**64
 _MAX_SEQ: Final = 10**10 - 1  # file names hold ten digits
 
@@ -110,8 +110,8 @@ class CheckpointStore:
     """
 
     def __init__(self, root: Path, node: str, keep: int = 2) -> None:
-        if not _NODE_RE.fullmatch(node):
-            msg = f'node id {node!r} cannot be used as a directory name'
+        if not NODE_ID_RE.fullmatch(node):
+            msg = f'{node!r} is not a node id (a letter, then letters, digits or _)'
             raise ValueError(msg)
         if keep < 1:
             msg = f'keep must be at least 1, got {keep}'

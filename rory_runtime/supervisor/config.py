@@ -43,9 +43,9 @@ from typing import Any
 import yaml
 
 from ..errors import ConfigError
+from ..msgtypes import TYPE_NAME_RE
 from ..protocol import NODE_ID_RE, Method, ReplayPace
 
-_TYPE_RE = re.compile(r'[a-z][a-z0-9_]*/msg/[A-Z][A-Za-z0-9]*')
 # A ROS topic name, absolute or relative (no ~ or substitutions: the supervisor publishes it).
 _TOPIC_RE = re.compile(r'/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*')
 _PYTHON_NAMES = frozenset({'python', 'python3', 'python3.11'})
@@ -432,7 +432,7 @@ def _safe_action(path: Path, where: str, obj: Any) -> SafeAction:
         raise f.error('topic', f'must be a topic name (/e_stop, or e_stop in the supervisor\'s '
                                f'namespace), got {topic!r}')
     msgtype = f.required('type')
-    if not isinstance(msgtype, str) or not _TYPE_RE.fullmatch(msgtype):
+    if not isinstance(msgtype, str) or not TYPE_NAME_RE.fullmatch(msgtype):
         raise f.error('type', f'must look like pkg/msg/Name, got {msgtype!r}')
     hold = f.required('hold')
     if not isinstance(hold, dict):

@@ -41,7 +41,20 @@ from ..freshness import describe as describe_verdict
 from ..fsutil import make_private_dir
 from ..inflight import read_beat, slot_path
 from ..log import SegmentStore, default_typestore
-from ..protocol import InputSpec, Mode, ReplayPace, StatusKind
+from ..protocol import (
+    CheckpointStatus,
+    ErrorStatus,
+    HelloStatus,
+    InputSpec,
+    InputsStatus,
+    Mode,
+    OpenedStatus,
+    ReleasedStatus,
+    ReplayPace,
+    StatusMessage,
+    SwitchedStatus,
+    SyncedStatus,
+)
 from ..store import CheckpointStore
 from ..threads import name_this_thread
 from .config import NodeConfig, SupervisorConfig, check_store, store_error
@@ -117,7 +130,7 @@ class ChildExited:
 @dataclass(frozen=True)
 class StatusReceived:
     node: str
-    status: dict[str, Any]
+    message: StatusMessage
 
 
 @dataclass(frozen=True)
@@ -153,7 +166,7 @@ class Incarnation:
 
     number: int
     sync_nonce: int  # a SYNCED answering any SYNC with it proves the shadow path
-    hello: dict[str, Any] | None = None
+    hello: HelloStatus | None = None
     sync_sent: float = 0.0
     synced_counts: dict[str, int] | None = None  # its live publishers per input, from SYNCED
     release_sent: bool = False
@@ -200,7 +213,7 @@ class ManagedNode:
         self._retired_writers: list[Any] = []
         # The release gate (config.ReleaseGate): the RELEASED stats held while GATED, when
         # the gate times out, whether it was called before the node reached it, OPEN sent.
-        self.gated_stats: dict[str, Any] | None = None
+        self.gated_stats: ReleasedStatus | None = None
         self.gated_at: float | None = None
         self.gate_deadline: float | None = None
         self.gate_called = False
@@ -442,64 +455,56 @@ class ManagedNode:
         assert self.recovery is not None
         self.recovery.s3_restart(lambda: self.spawn(Mode.RECOVER))
 
-    def on_status(self, status: dict[str, Any]) -> None:
+    def on_status(self, message: StatusMessage) -> None:
         """A status message from this node's runtime."""
-        if status['incarnation'] != self.incarnation:
+        if message.incarnation != self.incarnation:
             return
-        kind = StatusKind(status['kind'])
-        if kind == StatusKind.HELLO:
-            self._on_hello(status)
-        elif kind == StatusKind.SYNCED:
+        status = message.status
+        if isinstance(status, HelloStatus):
+            self._on_hello(status, message)
+        elif isinstance(status, SyncedStatus):
             current = self.current
-            if status.get('nonce') == current.sync_nonce and current.synced_counts is None:
-                current.synced_counts = {
-                    str(k): int(v) for k, v in dict(status.get('live_publishers', {})).items()
-                }
+            if status.nonce == current.sync_nonce and current.synced_counts is None:
+                current.synced_counts = dict(status.live_publishers)
                 self._on_synced()
-        elif kind == StatusKind.RELEASED:
+        elif isinstance(status, ReleasedStatus):
             self._on_released(status)
-        elif kind == StatusKind.OPENED:
+        elif isinstance(status, OpenedStatus):
             if self.sm.state == NodeState.GATED and self.gated_stats is not None:
                 # What the node published while it waited was muted: counted, never sent.
                 self.sup.events_log.write('gate_opened', self.id, reason=self.gate_reason,
-                                          muted=status.get('muted'))
+                                          muted=status.muted)
                 stats, self.gated_stats = self.gated_stats, None
                 self._finish_release(stats)
-        elif kind == StatusKind.CHECKPOINT:
+        elif isinstance(status, CheckpointStatus):
             _logger.info(
                 '%s %s: checkpoint %s (cut %s, %s B, stall %.2f ms)', LOG_PREFIX, self.id,
-                status.get('seq'), status.get('cut'), status.get('bytes'),
-                float(status.get('stall_ms', 0.0)),
+                status.seq, status.cut, status.size, float(status.stall_ms),
             )
             self.watchdog.checkpoint_taken(self._now())
             self.current.checkpoint_error = None
-            self.sup.events_log.write('checkpoint', self.id, **_fields(status))
-        elif kind == StatusKind.SWITCHED:
-            topic = str(status.get('topic'))
-            passed = status.get('passed_by_relay') or []
-            self.sup.events_log.write('switched', self.id, topic=topic, passed_by_relay=passed)
-            if self.recovery is not None and self.recovery.on_switched(topic):
+            self.sup.events_log.write('checkpoint', self.id, **_fields(message))
+        elif isinstance(status, SwitchedStatus):
+            self.sup.events_log.write('switched', self.id, topic=status.topic,
+                                      passed_by_relay=list(status.passed_by_relay))
+            if self.recovery is not None and self.recovery.on_switched(status.topic):
                 self._end_recovery()
-        elif kind == StatusKind.INPUTS:
+        elif isinstance(status, InputsStatus):
             self._on_inputs(status)
-        elif kind == StatusKind.ERROR:
-            message = str(status.get('message'))
-            if CHECKPOINT_FAILURE_RE.match(message):
-                self.current.checkpoint_error = message
-            _logger.error('%s %s: %s', LOG_PREFIX, self.id, status.get('message'))
-            self.sup.events_log.write('error', self.id, message=status.get('message'))
+        elif isinstance(status, ErrorStatus):
+            if CHECKPOINT_FAILURE_RE.match(status.message):
+                self.current.checkpoint_error = status.message
+            _logger.error('%s %s: %s', LOG_PREFIX, self.id, status.message)
+            self.sup.events_log.write('error', self.id, message=status.message)
 
-    def _on_hello(self, status: dict[str, Any]) -> None:
+    def _on_hello(self, hello: HelloStatus, message: StatusMessage) -> None:
+        """The process started (``message``, all of it, goes to the event log)."""
         if self.current.hello is not None:
             return
-        self.current.hello = status
-        try:
-            self.inputs = [InputSpec.from_json(i) for i in status.get('inputs', [])]
-        except ProtocolError as err:
-            _logger.error('%s %s: bad HELLO: %s', LOG_PREFIX, self.id, err)
-            return
-        self.sup.events_log.write('hello', self.id, **_fields(status))
-        for refused in status.get('refused') or []:
+        self.current.hello = hello
+        self.inputs = list(hello.inputs)
+        self.sup.events_log.write('hello', self.id, **_fields(message))
+        for refused in hello.refused:
             _logger.warning('%s %s: %s', LOG_PREFIX, self.id, refused)
         if self.cfg.method.logs:
             if self.ring is None:
@@ -512,15 +517,15 @@ class ManagedNode:
                         'now are not recorded', LOG_PREFIX, self.id,
                     )
                 self.recovery.join_ring(self.ring)
-        freshness = (status.get('restored') or {}).get('freshness')
-        if isinstance(freshness, dict):
+        if hello.restored is not None:
+            freshness = hello.restored.freshness
             self.last_freshness = freshness
             if freshness.get('refused'):
                 self._refuse_stale(freshness)
                 return
         if self.recovery is not None:
-            self.recovery.on_hello(float(status.get('restore_ms', 0.0)))
-            if self.cfg.method.checkpoints and status.get('refused') and not status.get('restored'):
+            self.recovery.on_hello(float(hello.restore_ms))
+            if self.cfg.method.checkpoints and hello.refused and hello.restored is None:
                 # Logs are pruned up to the older kept checkpoint's cut: with both refused,
                 # replay cannot rebuild what they held. Say so; never pretend.
                 _logger.error(
@@ -531,8 +536,8 @@ class ManagedNode:
             if self.sm.state == NodeState.STARTING:
                 self.sm.change_state(NodeState.ARMING, 'waiting for RORY readers to match')
             elif self.sm.state == NodeState.RESTORING:
-                cut = (status.get('restored') or {}).get('cut')
-                self.sm.change_state(NodeState.REPLAYING, f'replay after segment {cut}')
+                self.sm.change_state(NodeState.REPLAYING,
+                                     f'replay after segment {_restored_cut(hello)}')
             self._send_sync()
 
     def _refuse_stale(self, verdict: dict[str, Any]) -> None:
@@ -547,13 +552,9 @@ class ManagedNode:
         _logger.error('%s %s: %s', LOG_PREFIX, self.id, reason)
         self._give_up(reason, freshness=verdict)
 
-    def _on_inputs(self, status: dict[str, Any]) -> None:
+    def _on_inputs(self, status: InputsStatus) -> None:
         """The node made a subscription after HELLO: read that topic in the ring too."""
-        try:
-            inputs = [InputSpec.from_json(i) for i in status.get('inputs', [])]
-        except ProtocolError as err:
-            _logger.error('%s %s: bad INPUTS: %s', LOG_PREFIX, self.id, err)
-            return
+        inputs = list(status.inputs)
         added = sorted({i.topic for i in inputs} - {i.topic for i in self.inputs})
         self.inputs = inputs
         self.sup.events_log.write('inputs', self.id, added=added)
@@ -569,7 +570,7 @@ class ManagedNode:
     def _on_synced(self) -> None:
         if self.sm.state == NodeState.REPLAYING and self.recovery is not None:
             assert self.current.hello is not None and self.replay_pub is not None
-            cut = (self.current.hello.get('restored') or {}).get('cut')
+            cut = _restored_cut(self.current.hello)
             incarnation = self.incarnation
             self.recovery.s3_replay(
                 self.replay_pub, incarnation, cut, self._replay_pace(),
@@ -585,7 +586,7 @@ class ManagedNode:
         """
         if self.cfg.replay is not None:
             return self.cfg.replay
-        wanted = (self.current.hello or {}).get('replay')
+        wanted = None if self.current.hello is None else self.current.hello.replay
         return ReplayPace(wanted) if wanted in {p.value for p in ReplayPace} else ReplayPace.FAST
 
     def _armed(self) -> bool:
@@ -595,19 +596,15 @@ class ManagedNode:
         counts = self.ring.publisher_counts()
         return all(counts.get(t, 0) >= n for t, n in self.current.synced_counts.items())
 
-    def _on_released(self, status: dict[str, Any]) -> None:
+    def _on_released(self, stats: ReleasedStatus) -> None:
         self.running_since = self._now()
-        stats = {k: status.get(k) for k in ('applied', 'replayed', 'duplicates', 'muted',
-                                             'ticks_replayed', 'clock_fallbacks',
-                                             'parameter_changes_replayed',
-                                             'requests_replayed')}
         recovering = self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING)
         if recovering and self.recovery is not None and self.cfg.release_gate is not None:
             self._enter_gate(stats)
             return
         self._finish_release(stats)
 
-    def _enter_gate(self, stats: dict[str, Any]) -> None:
+    def _enter_gate(self, stats: ReleasedStatus) -> None:
         """Caught up and live, outputs muted: wait for the release call (or the timeout)."""
         gate = self.cfg.release_gate
         assert gate is not None
@@ -652,7 +649,7 @@ class ManagedNode:
             return True, f'{self.id}: {state.value.lower()}; released as soon as it has caught up'
         return False, f'{self.id}: {state.value}, no recovery waits for release'
 
-    def _finish_release(self, stats: dict[str, Any]) -> None:
+    def _finish_release(self, stats: ReleasedStatus) -> None:
         rec = self.recovery
         if rec is not None and self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING,
                                                  NodeState.GATED):
@@ -669,7 +666,7 @@ class ManagedNode:
                 '%s %s: recovered in %.1f ms (%s; crashes %d; replayed %s, duplicates skipped '
                 '%s%s)', LOG_PREFIX, self.id, timing['total_ms'],
                 ' '.join(f'{k[:-3]}={v:.1f}' for k, v in timing.items() if k != 'total_ms'),
-                rec.crashes, stats['replayed'], stats['duplicates'], gated,
+                rec.crashes, stats.replayed, stats.duplicates, gated,
             )
             verdict = self.last_freshness
             if verdict is not None and self.cfg.method.checkpoints:
@@ -689,7 +686,7 @@ class ManagedNode:
                     dropped['seqs'])
             self.sup.events_log.write(
                 'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
-                incarnation=self.incarnation, replay=pace, **timing, **stats,
+                incarnation=self.incarnation, replay=pace, **timing, **_recovery_counts(stats),
                 input_gaps=[g.to_json() for g in gaps], r_log=rec.r_summary(),
                 never_delivered=never, freshness=self.last_freshness, gate_ms=gate_ms,
                 gate=gate_reason,
@@ -789,7 +786,8 @@ class ManagedNode:
         return self.running_since
 
     def _checkpoint_interval(self) -> float:
-        return float((self.current.hello or {}).get('interval') or 2.0)
+        interval = None if self.current.hello is None else self.current.hello.interval
+        return float(interval or 2.0)
 
     def checkpoint_overdue(self, now: float) -> float | None:
         """Seconds past the time a running node must have checkpointed by, if it is late
@@ -941,8 +939,24 @@ class ManagedNode:
         self.sm.change_state(NodeState.STOPPED)
 
 
-def _fields(status: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in status.items() if k not in ('kind', 'node')}
+def _fields(message: StatusMessage) -> dict[str, Any]:
+    """What a status carries but its kind and node, as it travelled: the fields of the
+    ``hello`` and ``checkpoint`` events."""
+    return {k: v for k, v in message.to_json().items() if k not in ('kind', 'node')}
+
+
+def _restored_cut(hello: HelloStatus) -> int | None:
+    """The last log segment the restored checkpoint holds: replay starts after it."""
+    return None if hello.restored is None else hello.restored.cut
+
+
+def _recovery_counts(stats: ReleasedStatus) -> dict[str, int]:
+    """The node's counters the ``recovered`` event carries."""
+    return {'applied': stats.applied, 'replayed': stats.replayed,
+            'duplicates': stats.duplicates, 'muted': stats.muted,
+            'ticks_replayed': stats.ticks_replayed, 'clock_fallbacks': stats.clock_fallbacks,
+            'parameter_changes_replayed': stats.parameter_changes_replayed,
+            'requests_replayed': stats.requests_replayed}
 
 
 class Supervisor:
@@ -975,17 +989,17 @@ class Supervisor:
     def post_status(self, node_id: str, text: str) -> None:
         """Queue a status message for the main thread."""
         try:
-            status = protocol.decode_status(text, self.secret)
+            message = protocol.decode_status(text, self.secret)
         except ProtocolError as err:
             _logger.warning('%s %s: ignoring malformed status: %s', LOG_PREFIX, node_id, err)
             return
-        if status['node'] != node_id:
+        if message.node != node_id:
             # Only this node's runtime publishes here; anything else is a misconfigured or
             # foreign participant and must not steer this node's recovery.
             _logger.warning('%s %s: ignoring a status that claims to be from %r', LOG_PREFIX,
-                            node_id, status['node'])
+                            node_id, message.node)
             return
-        self.events.put(StatusReceived(node_id, status))
+        self.events.put(StatusReceived(node_id, message))
 
     def make_ring(self, node_id: str) -> Ring:
         """A ring for one node (the shared ring executor is created on first use; its readers
@@ -1190,7 +1204,7 @@ class Supervisor:
             if isinstance(event, ChildExited):
                 self.nodes[event.node].on_exit(event)
             elif isinstance(event, StatusReceived):
-                self.nodes[event.node].on_status(event.status)
+                self.nodes[event.node].on_status(event.message)
             elif isinstance(event, Released):
                 pass  # the node's RELEASED status ends the recovery; this only marks the send
             elif isinstance(event, GateCall):

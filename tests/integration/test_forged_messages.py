@@ -61,8 +61,12 @@ def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: i
         forged = protocol.pack_msg(incarnation, topic='/numbers', recv_ns=1, source_ns=1, seq=1,
                                    data=b'\x00\x01\x00\x00' + (41).to_bytes(8, 'little'))
         shadow.publish(forged)
+        released = protocol.ReleasedStatus(
+            applied=0, replayed=0, duplicates=0, muted=0, quarantined=0, passed_by_relay=0,
+            ticks=0, ticks_replayed=0, clock_fallbacks=0, parameter_changes=0,
+            parameter_changes_replayed=0, requests=0, requests_replayed=0)
         status.publish(String(data=protocol.encode_status(
-            protocol.StatusKind.RELEASED, 'integrator', incarnation, key=bytes(32))))
+            released, 'integrator', incarnation, key=bytes(32))))
         wait_for(lambda: any(e['kind'] == 'error' and 'not signed' in e.get('message', '')
                               for e in events(store)), 20, "the node's refusal")
         wait_for(lambda: refusal in log.read_text(errors='replace'), 20,

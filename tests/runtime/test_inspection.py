@@ -114,6 +114,13 @@ def test_a_dataclass_of_code_not_loaded_here_is_shown_by_its_fields(
     assert "'<dataclass>': 'node_code_elsewhere.Pose', 'x': 1.0, 'y': 2.0" in text
 
 
+def test_a_folder_that_is_not_a_node_id_is_not_a_node(store: Path) -> None:
+    # No supervisor makes it (protocol.NODE_ID_RE): a folder put there by hand is not listed.
+    (store / 'my-node' / 'checkpoints').mkdir(parents=True)
+    code, text = _run(str(store))
+    assert code == 0 and 'node mapper' in text and 'my-node' not in text
+
+
 @pytest.mark.parametrize(('argv', 'message'), [
     (['{store}/../nowhere'], 'not a directory'),
     (['{store}', '--node', 'other'], "no node 'other' (nodes here: mapper)"),

@@ -564,9 +564,11 @@ def test_segment_store_read_after_reports_corruption(tmp_path: Path) -> None:
         list(store.read_after(None))
 
 
-@pytest.mark.parametrize('node', ['', '..', 'a/b'])
+# A node id is what the supervisor config allows (protocol.NODE_ID_RE): no path, and a part
+# of a ROS topic name, so no '-' or '.' and no digit first.
+@pytest.mark.parametrize('node', ['', '..', 'a/b', 'my-node', 'a.b', '0abc', '_x'])
 def test_segment_store_bad_node_id(tmp_path: Path, node: str) -> None:
-    with pytest.raises(ValueError, match='cannot be used as a directory name'):
+    with pytest.raises(ValueError, match='is not a node id'):
         SegmentStore(tmp_path, node)
 
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import re
 import struct
 
 import pytest
@@ -17,14 +19,26 @@ from rory_runtime.protocol import (
     FLAG_RELAY,
     SEQ_MASK,
     TAG_BYTES,
+    CheckpointStatus,
     EnvelopeKind,
+    ErrorStatus,
+    HelloStatus,
     InputSpec,
+    InputsStatus,
     Method,
+    Mode,
     Msg,
     Open,
+    OpenedStatus,
     Release,
+    ReleasedStatus,
+    RestoredCheckpoint,
+    Status,
     StatusKind,
+    StatusMessage,
+    SwitchedStatus,
     Sync,
+    SyncedStatus,
     channel,
     decode_status,
     encode_status,
@@ -344,31 +358,161 @@ def test_envelope_like_bytes_unpack_or_raise_protocol_error(raw: bytes) -> None:
 
 # --------------------------------------------------------------------------- status messages
 
+SENT_NS = 1_700_000_000_123_456_789
+TWO_INPUTS = (InputSpec('/numbers', 'std_msgs/msg/Int64', True, False, 10),
+              InputSpec('/map', 'nav_msgs/msg/OccupancyGrid', True, True, 0))
+NO_COUNTS = ReleasedStatus(
+    applied=0, replayed=0, duplicates=0, muted=0, quarantined=0, passed_by_relay=0, ticks=0,
+    ticks_replayed=0, clock_fallbacks=0, parameter_changes=0, parameter_changes_replayed=0,
+    requests=0, requests_replayed=0)
 
-def test_status_round_trips_with_extra_fields() -> None:
-    text = encode_status(
-        StatusKind.HELLO, 'integrator', 3, inputs=[{'topic': '/a'}], restore_ms=1.5
-    )
-    assert decode_status(text) == {
-        'kind': 'hello',
-        'node': 'integrator',
-        'incarnation': 3,
-        'inputs': [{'topic': '/a'}],
-        'restore_ms': 1.5,
-    }
+STATUSES: dict[str, Status] = {
+    'hello_fresh': HelloStatus(
+        mode=Mode.FRESH, method=Method.RORY, pid=4242, manifest='abc123', inputs=TWO_INPUTS,
+        restored=None, refused=(), restore_ms=0.0021457672119140625,
+        process_start_ns=1_700_000_000_000_000_000, interval=2.0, replay=None,
+        dds_profile=None, dds_transports=None),
+    'hello_recover': HelloStatus(
+        mode=Mode.RECOVER, method=Method.RORY, pid=4243, manifest='abc123', inputs=TWO_INPUTS,
+        restored=RestoredCheckpoint(
+            seq=7, cut=12, created_ns=1_699_999_999_000_000_000, parameters=('gain',),
+            lifecycle='active',
+            freshness={'age_s': 1.234, 'clock': 'system', 'restored': ['count', 'pose'],
+                       'reset': [], 'kept_stale': [], 'refused': [],
+                       'max_age': {'pose': 5.0}}),
+        refused=('checkpoint 8: checksum mismatch',), restore_ms=3.5, process_start_ns=None,
+        interval=0.5, replay='paced', dds_profile='/tmp/profile.xml', dds_transports='UDPv4'),
+    'hello_whole_interval': HelloStatus(
+        mode=Mode.FRESH, method=Method.CHECKPOINT, pid=1, manifest='', inputs=(),
+        restored=None, refused=(), restore_ms=0.5, process_start_ns=None, interval=2,
+        replay='fast', dds_profile=None, dds_transports=None),
+    'synced': SyncedStatus(nonce=2**64 - 1, live_publishers={'/numbers': 1, '/map': 0}),
+    'released': dataclasses.replace(NO_COUNTS, applied=10, replayed=4, duplicates=1, muted=2,
+                                    ticks=3, ticks_replayed=1),
+    'opened': OpenedStatus(muted=7),
+    'checkpoint': CheckpointStatus(seq=3, cut=5, size=1024, stall_ms=0.25, total_ms=4.125),
+    'checkpoint_no_cut': CheckpointStatus(seq=1, cut=None, size=64, stall_ms=0.0,
+                                          total_ms=1.0),
+    'switched': SwitchedStatus(topic='/numbers', passed_by_relay=(4, 5, 9)),
+    'inputs': InputsStatus(inputs=TWO_INPUTS),
+    'error': ErrorStatus(message='checkpoint skipped: pose: \u00fc "quoted" \\ \U0001f680'),
+}
+"""Statuses of every kind, as a node sends them (from node ``integrator``, incarnation 3)."""
+
+PINNED = {
+    'hello_fresh': (
+        '{"dds_profile":null,"dds_transports":null,"incarnation":3,'
+        '"inputs":[{"depth":10,"reliable":true,"topic":"/numbers",'
+        '"transient_local":false,"type":"std_msgs/msg/Int64"},{"depth":0,'
+        '"reliable":true,"topic":"/map","transient_local":true,'
+        '"type":"nav_msgs/msg/OccupancyGrid"}],"interval":2.0,"kind":"hello",'
+        '"manifest":"abc123","method":"rory","mode":"fresh","node":"integrator",'
+        '"pid":4242,"process_start_ns":1700000000000000000,"refused":[],"replay":null,'
+        '"restore_ms":0.0021457672119140625,"restored":null,'
+        '"sent_ns":1700000000123456789,"sig":"c0370d2b1971f515b7000c6f697d51bd"}'
+    ),
+    'hello_recover': (
+        '{"dds_profile":"/tmp/profile.xml","dds_transports":"UDPv4","incarnation":3,'
+        '"inputs":[{"depth":10,"reliable":true,"topic":"/numbers",'
+        '"transient_local":false,"type":"std_msgs/msg/Int64"},{"depth":0,'
+        '"reliable":true,"topic":"/map","transient_local":true,'
+        '"type":"nav_msgs/msg/OccupancyGrid"}],"interval":0.5,"kind":"hello",'
+        '"manifest":"abc123","method":"rory","mode":"recover","node":"integrator",'
+        '"pid":4243,"process_start_ns":null,'
+        '"refused":["checkpoint 8: checksum mismatch"],"replay":"paced",'
+        '"restore_ms":3.5,"restored":{"created_ns":1699999999000000000,"cut":12,'
+        '"freshness":{"age_s":1.234,"clock":"system","kept_stale":[],'
+        '"max_age":{"pose":5.0},"refused":[],"reset":[],"restored":["count","pose"]},'
+        '"lifecycle":"active","parameters":["gain"],"seq":7},'
+        '"sent_ns":1700000000123456789,"sig":"fbc6195b06b87b9500982fe3fe40201d"}'
+    ),
+    'hello_whole_interval': (
+        '{"dds_profile":null,"dds_transports":null,"incarnation":3,"inputs":[],'
+        '"interval":2,"kind":"hello","manifest":"","method":"checkpoint",'
+        '"mode":"fresh","node":"integrator","pid":1,"process_start_ns":null,'
+        '"refused":[],"replay":"fast","restore_ms":0.5,"restored":null,'
+        '"sent_ns":1700000000123456789,"sig":"b479d74fc6ba0ef4431dab29961be631"}'
+    ),
+    'synced': (
+        '{"incarnation":3,"kind":"synced","live_publishers":{"/map":0,"/numbers":1},'
+        '"node":"integrator","nonce":18446744073709551615,'
+        '"sent_ns":1700000000123456789,"sig":"22f9b9d9f0e118fecf611dc252d8e315"}'
+    ),
+    'released': (
+        '{"applied":10,"clock_fallbacks":0,"duplicates":1,"incarnation":3,'
+        '"kind":"released","muted":2,"node":"integrator","parameter_changes":0,'
+        '"parameter_changes_replayed":0,"passed_by_relay":0,"quarantined":0,'
+        '"replayed":4,"requests":0,"requests_replayed":0,"sent_ns":1700000000123456789,'
+        '"sig":"3370184e5b2b2a19e83a71e3782ed742","ticks":3,"ticks_replayed":1}'
+    ),
+    'opened': (
+        '{"incarnation":3,"kind":"opened","muted":7,"node":"integrator",'
+        '"sent_ns":1700000000123456789,"sig":"2d5fce7e924ea1e8036917acf4600a80"}'
+    ),
+    'checkpoint': (
+        '{"bytes":1024,"cut":5,"incarnation":3,"kind":"checkpoint","node":"integrator",'
+        '"sent_ns":1700000000123456789,"seq":3,'
+        '"sig":"67ac3dd1b9bc3f3dff9b12ece165abbe","stall_ms":0.25,"total_ms":4.125}'
+    ),
+    'checkpoint_no_cut': (
+        '{"bytes":64,"cut":null,"incarnation":3,"kind":"checkpoint",'
+        '"node":"integrator","sent_ns":1700000000123456789,"seq":1,'
+        '"sig":"8d041a1e47cf82aa60d7f7f1e04af7e5","stall_ms":0.0,"total_ms":1.0}'
+    ),
+    'switched': (
+        '{"incarnation":3,"kind":"switched","node":"integrator","passed_by_relay":[4,5,'
+        '9],"sent_ns":1700000000123456789,"sig":"946fa64f08e3887bb1d86609648dd0d6",'
+        '"topic":"/numbers"}'
+    ),
+    'inputs': (
+        '{"incarnation":3,"inputs":[{"depth":10,"reliable":true,"topic":"/numbers",'
+        '"transient_local":false,"type":"std_msgs/msg/Int64"},{"depth":0,'
+        '"reliable":true,"topic":"/map","transient_local":true,'
+        '"type":"nav_msgs/msg/OccupancyGrid"}],"kind":"inputs","node":"integrator",'
+        '"sent_ns":1700000000123456789,"sig":"667dfa0bd94b841c4a5effa3fb068ad5"}'
+    ),
+    'error': (
+        '{"incarnation":3,"kind":"error",'
+        '"message":"checkpoint skipped: pose: \\u00fc \\"quoted\\" \\\\ \\ud83d\\ude80",'
+        '"node":"integrator","sent_ns":1700000000123456789,'
+        '"sig":"3eb9fde0adf0280d45f9e5964b046bd0"}'
+    ),
+}
+"""Each of STATUSES signed with KEY, as written by encode_status before statuses were typed
+(``encode_status(kind, node, incarnation, key=, sent_ns=, **fields)``, commit b6c3d21): a node
+and a supervisor of this version read each other's messages as before."""
 
 
-@pytest.mark.parametrize('kind', list(StatusKind))
-def test_every_status_kind_round_trips(kind: StatusKind) -> None:
-    obj = decode_status(encode_status(kind, 'n', 0))
-    assert obj['kind'] == kind.value
-    assert StatusKind(obj['kind']) is kind
+@pytest.mark.parametrize('name', list(STATUSES))
+def test_each_status_is_encoded_byte_for_byte_as_before(name: str) -> None:
+    status = STATUSES[name]
+    signed = encode_status(status, 'integrator', 3, key=KEY, sent_ns=SENT_NS)
+    assert signed == PINNED[name]
+    unsigned = encode_status(status, 'integrator', 3, sent_ns=SENT_NS)
+    assert json.loads(unsigned) == {k: v for k, v in json.loads(signed).items() if k != 'sig'}
+    assert decode_status(PINNED[name], KEY) == StatusMessage('integrator', 3, SENT_NS, status)
+
+
+def test_every_status_kind_is_pinned() -> None:
+    assert {s.kind for s in STATUSES.values()} == set(StatusKind)
+    for name, status in STATUSES.items():
+        assert json.loads(PINNED[name])['kind'] == status.kind.value
 
 
 def test_encode_status_is_compact_json_with_sorted_keys() -> None:
-    text = encode_status(StatusKind.SYNCED, 'n', 1, nonce=5)
-    assert text == '{"incarnation":1,"kind":"synced","node":"n","nonce":5}'
-    assert json.loads(text)['nonce'] == 5
+    text = encode_status(SyncedStatus(nonce=5, live_publishers={}), 'n', 1)
+    assert text == '{"incarnation":1,"kind":"synced","live_publishers":{},"node":"n","nonce":5}'
+    assert decode_status(text) == StatusMessage('n', 1, None, SyncedStatus(nonce=5,
+                                                                          live_publishers={}))
+
+
+def test_fields_a_kind_does_not_define_are_left_out_but_signed() -> None:
+    obj = json.loads(encode_status(OpenedStatus(muted=1), 'n', 2))
+    text = encode_status(OpenedStatus(muted=1), 'n', 2, key=KEY)
+    extended = json.dumps({**json.loads(text), 'later': [1, 2]})
+    with pytest.raises(ProtocolError, match='signature does not match'):
+        decode_status(extended, KEY)  # the signature covers every field
+    assert decode_status(json.dumps({**obj, 'later': [1, 2]})).status == OpenedStatus(muted=1)
 
 
 @pytest.mark.parametrize(
@@ -386,11 +530,45 @@ def test_encode_status_is_compact_json_with_sorted_keys() -> None:
         pytest.param('{"kind": "hello", "node": 5, "incarnation": 1}', id='node-not-str'),
         pytest.param('{"kind": "hello", "node": "n"}', id='missing-incarnation'),
         pytest.param('{"kind": "hello", "node": "n", "incarnation": "1"}', id='inc-not-int'),
+        pytest.param('{"kind": "opened", "node": "n", "incarnation": 1}', id='missing-field'),
     ],
 )
 def test_decode_status_refuses_malformed_text(text: str) -> None:
     with pytest.raises(ProtocolError):
         decode_status(text)
+
+
+@pytest.mark.parametrize(
+    ('name', 'change', 'error'),
+    [
+        ('opened', {'muted': None}, 'opened status lacks muted'),
+        ('opened', {'muted': '7'}, 'opened status: muted must be an integer, not a string'),
+        ('opened', {'muted': True}, 'opened status: muted must be an integer, not a boolean'),
+        ('opened', {'incarnation': 1.0}, 'status: incarnation must be an integer, not a number'),
+        ('opened', {'sent_ns': '1'}, 'status: sent_ns must be an integer, not a string'),
+        ('hello_fresh', {'mode': 'sideways'}, 'hello status: mode must be one of fresh, recover'),
+        ('hello_fresh', {'interval': '2'}, 'hello status: interval must be a number'),
+        ('hello_fresh', {'refused': ['a', 1]},
+         'hello status: refused must be an array of strings, not an array'),
+        ('hello_fresh', {'inputs': [{'topic': '/a'}]}, 'hello status: inputs: bad input'),
+        ('hello_recover', {'restored': {'seq': 1}}, 'hello status lacks restored.cut'),
+        ('hello_recover', {'restored': []}, 'hello status: restored must be an object or null'),
+        ('synced', {'live_publishers': {'/a': 1.5}},
+         'synced status: live_publishers must be an object of integers'),
+        ('checkpoint', {'bytes': None}, 'checkpoint status lacks bytes'),
+        ('switched', {'passed_by_relay': [1, '2']},
+         'switched status: passed_by_relay must be an array of integers'),
+        ('error', {'message': 5}, 'error status: message must be a string, not an integer'),
+    ],
+)
+def test_a_field_missing_or_of_the_wrong_type_is_named(
+    name: str, change: dict[str, object], error: str
+) -> None:
+    obj = json.loads(encode_status(STATUSES[name], 'n', 1, sent_ns=SENT_NS))
+    obj.update(change)
+    obj = {k: v for k, v in obj.items() if v is not None or k not in change}  # None: left out
+    with pytest.raises(ProtocolError, match=re.escape(error)):
+        decode_status(json.dumps(obj))
 
 
 def test_topic_names() -> None:
@@ -575,10 +753,10 @@ def test_an_envelope_that_is_unsigned_tampered_or_signed_with_another_key_is_ref
 
 
 def test_a_signed_status_is_read_and_a_forged_one_refused() -> None:
-    text = encode_status(StatusKind.RELEASED, 'mapper', 3, key=KEY, applied=12)
-    assert decode_status(text, KEY) == {'kind': 'released', 'node': 'mapper', 'incarnation': 3,
-                                        'applied': 12}
+    released = dataclasses.replace(NO_COUNTS, applied=12)
+    text = encode_status(released, 'mapper', 3, key=KEY)
+    assert decode_status(text, KEY) == StatusMessage('mapper', 3, None, released)
     with pytest.raises(ProtocolError, match='signature does not match'):
         decode_status(text.replace('"applied":12', '"applied":13'), KEY)
     with pytest.raises(ProtocolError, match='not signed'):
-        decode_status(encode_status(StatusKind.RELEASED, 'mapper', 3, applied=12), KEY)
+        decode_status(encode_status(released, 'mapper', 3), KEY)

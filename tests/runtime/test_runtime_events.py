@@ -45,6 +45,13 @@ def test_publishers_are_muted_until_release(tmp_path: Path) -> None:
     assert rt.stats['muted'] == 1
 
 
+def test_the_runtime_counters_are_what_the_released_status_carries(tmp_path: Path) -> None:
+    # RELEASED is made from NodeRuntime.stats as they are: a counter it has no field for would
+    # fail the release.
+    rt = make_runtime(tmp_path, Mode.FRESH)
+    assert protocol.ReleasedStatus(**rt.stats).to_json() == rt.stats
+
+
 # -- timers and the clock (docs/architecture.md, "Timers and the clock") ----------------------
 
 

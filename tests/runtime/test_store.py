@@ -170,9 +170,12 @@ def test_keep_is_configurable(tmp_path: Path) -> None:
         CheckpointStore(tmp_path, NODE, keep=0)
 
 
-@pytest.mark.parametrize('node', ['', '.', '..', 'a/b', '/abs', 'a\x00b', 'sp ace'])
+# A node id is what the supervisor config allows (protocol.NODE_ID_RE): no path, and a part
+# of a ROS topic name, so no '-' or '.' and no digit first.
+@pytest.mark.parametrize('node', ['', '.', '..', 'a/b', '/abs', 'a\x00b', 'sp ace', 'my-node',
+                                  'a.b', '0abc', '_x'])
 def test_bad_node_id(tmp_path: Path, node: str) -> None:
-    with pytest.raises(ValueError, match='cannot be used as a directory name'):
+    with pytest.raises(ValueError, match='is not a node id'):
         CheckpointStore(tmp_path, node)
 
 

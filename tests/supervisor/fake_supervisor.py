@@ -10,6 +10,7 @@ the test's tmp_path: a ``rory`` node's replay runs as it does under the supervis
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import signal
 import threading
@@ -21,7 +22,15 @@ import yaml
 
 from rory_runtime import protocol
 from rory_runtime.log import LogEntry
-from rory_runtime.protocol import InputSpec
+from rory_runtime.protocol import (
+    HelloStatus,
+    InputSpec,
+    Method,
+    Mode,
+    ReleasedStatus,
+    Status,
+    SyncedStatus,
+)
 from rory_runtime.supervisor.config import SupervisorConfig, load_config
 from rory_runtime.supervisor.ring import Ring
 from rory_runtime.supervisor.states import NodeState
@@ -240,8 +249,14 @@ INPUT = InputSpec(topic='/in', msgtype='std_msgs/msg/String', reliable=True,
                   transient_local=False, depth=10)
 """The one input of a node in these tests (its ring reader, its handover)."""
 
-RELEASED_STATS = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0,
-                  'ticks_replayed': 0, 'clock_fallbacks': 0, 'parameter_changes_replayed': 0,
+HELLO = HelloStatus(mode=Mode.FRESH, method=Method.RESTART, pid=1, manifest='sha256:0',
+                    inputs=(), restored=None, refused=(), restore_ms=1.0, process_start_ns=None,
+                    interval=2.0, replay=None, dds_profile=None, dds_transports=None)
+"""A HELLO with nothing restored; ``Harness.hello`` fills in the node's method and inputs."""
+
+RELEASED_STATS = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0, 'quarantined': 0,
+                  'passed_by_relay': 0, 'ticks': 0, 'ticks_replayed': 0, 'clock_fallbacks': 0,
+                  'parameter_changes': 0, 'parameter_changes_replayed': 0, 'requests': 0,
                   'requests_replayed': 0}
 
 
@@ -267,19 +282,23 @@ class Harness:
     def states(self) -> list[str]:
         return [r['new'] for r in self.sup.events_log.of('state')]
 
-    def status(self, kind: str, **fields: Any) -> None:
-        self.node.on_status({'kind': kind, 'node': self.node.id,
-                             'incarnation': self.node.incarnation, **fields})
+    def status(self, status: Status) -> None:
+        """A status of the node's current process, as the supervisor gets it: signed with the
+        run's key, encoded and decoded."""
+        text = protocol.encode_status(status, self.node.id, self.node.incarnation,
+                                      key=self.sup.secret)
+        self.node.on_status(protocol.decode_status(text, self.sup.secret))
 
     def hello(self, **fields: Any) -> None:
-        inputs = [INPUT.to_json()] if self.node.cfg.method.logs else []
-        self.status('hello', **{'inputs': inputs, 'restored': None, 'refused': [],
-                                'restore_ms': 1.0, **fields})
+        inputs = (INPUT,) if self.node.cfg.method.logs else ()
+        mode = Mode.RECOVER if self.node.incarnation > 1 else Mode.FRESH
+        self.status(dataclasses.replace(HELLO, mode=mode, method=self.node.cfg.method,
+                                        inputs=inputs, **fields))
 
     def synced(self) -> None:
         """SYNCED, answering the supervisor's SYNC (its nonce)."""
-        self.status('synced', nonce=self.node.current.sync_nonce,
-                    live_publishers={INPUT.topic: 1})
+        self.status(SyncedStatus(nonce=self.node.current.sync_nonce,
+                                 live_publishers={INPUT.topic: 1}))
 
     def replayed(self) -> None:
         """Wait for the replay streamer to have sent RELEASE (it posts Released)."""
@@ -287,7 +306,7 @@ class Harness:
         assert isinstance(event, Released), event
 
     def released(self, **stats: Any) -> None:
-        self.status('released', **{**RELEASED_STATS, **stats})
+        self.status(ReleasedStatus(**{**RELEASED_STATS, **stats}))
 
     def up(self) -> None:
         """The process came up: HELLO and RELEASED (restart and checkpoint release at once);

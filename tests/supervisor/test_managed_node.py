@@ -17,6 +17,7 @@ from fake_supervisor import INPUT, Harness
 
 from rory_runtime import protocol
 from rory_runtime.log import LogEntry
+from rory_runtime.protocol import OpenedStatus, RestoredCheckpoint, SwitchedStatus
 from rory_runtime.supervisor.recovery import RecoveryLog
 from rory_runtime.supervisor.ring import Capture
 from rory_runtime.supervisor.states import NodeState
@@ -208,7 +209,7 @@ def test_a_gated_node_waits_for_the_call_then_opens_and_releases_the_safe_state(
     assert h.envelopes() == [protocol.Open(2)]
     h.tick(0.06)  # no OPENED yet: OPEN again (SYNC_PERIOD later)
     assert h.envelopes() == [protocol.Open(2)] * 2
-    h.status('opened', muted=7)
+    h.status(OpenedStatus(muted=7))
     assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
     (recovered,) = h.sup.events_log.of('recovered')
     assert recovered['gate_ms'] == pytest.approx(10060.0) and 'called' in recovered['gate']
@@ -223,7 +224,7 @@ def test_a_call_during_the_recovery_opens_the_gate_as_soon_as_it_is_reached(
     assert h.call_release() == (True, 'n: restoring; released as soon as it has caught up')
     h.up()
     assert h.node.sm.state == S.GATED and h.envelopes() == [protocol.Open(2)]
-    h.status('opened', muted=0)
+    h.status(OpenedStatus(muted=0))
     assert h.node.sm.state == S.RUNNING
 
 
@@ -256,7 +257,7 @@ def test_a_crash_at_the_gate_is_a_crash_of_the_same_recovery(tmp_path: Path) -> 
     h.up()
     assert h.node.sm.state == S.GATED and h.sup.safety.log == HELD
     h.call_release()
-    h.status('opened', muted=0)
+    h.status(OpenedStatus(muted=0))
     assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
     assert h.sup.events_log.of('recovered')[0]['crashes'] == 2
 
@@ -268,7 +269,8 @@ def test_a_stale_variable_under_refuse_stops_the_node_with_the_safe_state_held(
     h.exit(-signal.SIGKILL)
     verdict = {'age_s': 42.0, 'clock': 'system', 'restored': [], 'reset': [],
                'kept_stale': [], 'refused': ['pose'], 'max_age': {'pose': 5.0}}
-    h.hello(restored={'seq': 3, 'cut': None, 'freshness': verdict})
+    h.hello(restored=RestoredCheckpoint(seq=3, cut=None, created_ns=1, parameters=(),
+                                        lifecycle=None, freshness=verdict))
     assert h.node.sm.state == S.FATAL and h.child.signals == [signal.SIGKILL]
     reason = h.sup.events_log.of('fatal')[0]['reason']
     assert reason.startswith('checkpoint too old for pose (age 42.0 s on the system clock')
@@ -364,7 +366,7 @@ def test_the_handover_ends_the_recovery_without_releasing_the_safe_state_again(
     h.exit(-signal.SIGKILL)
     h.up()
     assert h.node.recovery is not None and ring.active_topics == {INPUT.topic}  # relaying
-    h.status('switched', topic=INPUT.topic, passed_by_relay=[])
+    h.status(SwitchedStatus(topic=INPUT.topic, passed_by_relay=()))
     assert h.node.recovery is None and ring.active_topics == set()
     assert h.sup.safety.log == ONCE and h.node.sm.state == S.RUNNING
 

@@ -103,20 +103,17 @@ def judge(keys: Sequence[str], rules: Iterable[Rule], taken: ClockReading | None
     return verdict
 
 
-def describe(verdict: dict[str, Any]) -> str:
-    """One phrase for the supervisor's log, from :meth:`Verdict.to_json`: what was restored,
-    what was not, and why."""
-    max_age = verdict.get('max_age') or {}
-    age_s = verdict.get('age_s')
-    age = 'age unknown' if age_s is None else f'age {float(age_s):.1f} s'
+def describe(verdict: Verdict) -> str:
+    """One phrase for the supervisor's log: what was restored, what was not, and why."""
+    age = 'age unknown' if verdict.age_s is None else f'age {verdict.age_s:.1f} s'
 
     def listed(keys: list[str]) -> str:
-        return ', '.join(f'{k} (max_age {float(max_age[k]):g} s)' if k in max_age else str(k)
-                         for k in keys)
+        return ', '.join(f'{k} (max_age {float(verdict.max_age[k]):g} s)'
+                         if k in verdict.max_age else k for k in keys)
 
-    parts = [f'restored: {", ".join(map(str, verdict.get("restored") or [])) or "none"}']
-    for field_name, label in (('refused', 'stale, refused'), ('reset', 'stale, reset'),
-                              ('kept_stale', 'stale, kept')):
-        if verdict.get(field_name):
-            parts.append(f'{label}: {listed(list(verdict[field_name]))}')
-    return f'{"; ".join(parts)} (checkpoint {age}, {verdict.get("clock")} clock)'
+    parts = [f'restored: {", ".join(verdict.restored) or "none"}']
+    for keys, label in ((verdict.refused, 'stale, refused'), (verdict.reset, 'stale, reset'),
+                        (verdict.kept_stale, 'stale, kept')):
+        if keys:
+            parts.append(f'{label}: {listed(keys)}')
+    return f'{"; ".join(parts)} (checkpoint {age}, {verdict.clock} clock)'

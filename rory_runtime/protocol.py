@@ -50,6 +50,7 @@ from rclpy.qos import (
 )
 
 from .errors import ProtocolError
+from .freshness import Verdict
 
 # ---------------------------------------------------------------------------------------------
 # Environment the supervisor sets for a node it runs. Without ENV_NODE the runtime stays inert
@@ -326,6 +327,31 @@ class _Fields:
             raise self._wrong(name, 'an object of integers', value)
         return dict(value)
 
+    def optional_number(self, name: str) -> float | None:
+        value = self._get(name)
+        if value is None:
+            return None
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise self._wrong(name, 'a number or null', value)
+        return value
+
+    def numbers(self, name: str) -> dict[str, float]:
+        value = self._get(name)
+        if not isinstance(value, dict) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value.values()):
+            raise self._wrong(name, 'an object of numbers', value)
+        return dict(value)
+
+    def verdict(self, name: str) -> Verdict:
+        """What the freshness rules did (freshness.Verdict, as :meth:`Verdict.to_json` sends it)."""
+        fields = self.nested(name)
+        if fields is None:
+            raise self._wrong(name, 'an object', None)
+        return Verdict(age_s=fields.optional_number('age_s'), clock=fields.text('clock'),
+                       restored=list(fields.texts('restored')), reset=list(fields.texts('reset')),
+                       kept_stale=list(fields.texts('kept_stale')),
+                       refused=list(fields.texts('refused')), max_age=fields.numbers('max_age'))
+
     def mapping(self, name: str) -> dict[str, Any]:
         value = self._get(name)
         if not isinstance(value, dict):
@@ -361,13 +387,13 @@ class RestoredCheckpoint:
     created_ns: int
     parameters: tuple[str, ...]  # the parameters set from it
     lifecycle: str | None  # the lifecycle state it returned to; None: not a lifecycle node
-    freshness: dict[str, Any]  # what the freshness rules did: freshness.Verdict.to_json()
+    freshness: Verdict  # what the freshness rules did
 
     def to_json(self) -> dict[str, Any]:
         """The fields as they travel."""
         return {'seq': self.seq, 'cut': self.cut, 'created_ns': self.created_ns,
                 'parameters': list(self.parameters), 'lifecycle': self.lifecycle,
-                'freshness': self.freshness}
+                'freshness': self.freshness.to_json()}
 
     @classmethod
     def from_fields(cls, fields: _Fields) -> RestoredCheckpoint:
@@ -380,7 +406,7 @@ class RestoredCheckpoint:
                    created_ns=fields.integer('created_ns'),
                    parameters=fields.texts('parameters'),
                    lifecycle=fields.optional_text('lifecycle'),
-                   freshness=fields.mapping('freshness'))
+                   freshness=fields.verdict('freshness'))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -515,7 +515,7 @@ class NodeRuntime:
             dds_transports=os.environ.get('FASTDDS_BUILTIN_TRANSPORTS'),
         ))
         self._hello_sent = True
-        if restored is not None and restored.freshness['refused']:
+        if restored is not None and restored.freshness.refused:
             # A stale variable whose rule is refuse: the node must not run on what it has;
             # the supervisor ends this process and holds the safe state.
             return
@@ -542,7 +542,7 @@ class NodeRuntime:
             if verdict.refused:
                 return RestoredCheckpoint(seq=ckpt.seq, cut=ckpt.cut, created_ns=ckpt.created_ns,
                                           parameters=(), lifecycle=None,
-                                          freshness=verdict.to_json())
+                                          freshness=verdict)
             try:
                 with self.lock:
                     # Parameters first: their callbacks may set attributes; the key variables
@@ -568,7 +568,7 @@ class NodeRuntime:
             return RestoredCheckpoint(seq=ckpt.seq, cut=ckpt.cut, created_ns=ckpt.created_ns,
                                       parameters=tuple(restored_parameters),
                                       lifecycle=node_lifecycle.state_of(self.node) or None,
-                                      freshness=verdict.to_json())
+                                      freshness=verdict)
 
     def _judge(self, ckpt: Checkpoint) -> freshness.Verdict:
         """Which of the checkpoint's variables are fresh enough to restore (freshness.py)."""

@@ -26,6 +26,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from ..freshness import Verdict
 from .states import NodeState
 
 # /diagnostics is one topic for the whole robot (aggregators listen there); the events are the
@@ -70,8 +71,8 @@ class NodeHealth:
     checkpoint_error: str | None = None
     # Why the supervisor gave up (FATAL), in its own words.
     fatal_reason: str | None = None
-    # What the last restore did with each key variable (freshness.Verdict.to_json()).
-    freshness: dict[str, Any] | None = None
+    # What the last restore did with each key variable.
+    freshness: Verdict | None = None
     # The release gate's service, while the node waits at it (GATED).
     gate_service: str | None = None
 
@@ -136,10 +137,11 @@ def node_status(health: NodeHealth, namespace: str = '/') -> DiagnosticStatus:
     }
     if health.freshness is not None:
         verdict = health.freshness
-        values['last restore: checkpoint age (s)'] = _number(verdict.get('age_s'))
-        for key, label in (('restored', 'restored'), ('reset', 'reset (stale)'),
-                           ('kept_stale', 'kept stale'), ('refused', 'refused (stale)')):
-            values[f'last restore: {label}'] = ', '.join(map(str, verdict.get(key) or []))
+        values['last restore: checkpoint age (s)'] = _number(verdict.age_s)
+        for keys, label in ((verdict.restored, 'restored'), (verdict.reset, 'reset (stale)'),
+                            (verdict.kept_stale, 'kept stale'),
+                            (verdict.refused, 'refused (stale)')):
+            values[f'last restore: {label}'] = ', '.join(keys)
     level = level_of(health.state)
     if health.state == NodeState.RUNNING:
         # A node that runs but cannot be recovered to now is not OK.

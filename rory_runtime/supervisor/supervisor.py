@@ -37,6 +37,7 @@ from std_srvs.srv import Trigger
 from .. import protocol
 from ..dds import fast_rediscovery_env
 from ..errors import ProtocolError, RoryError
+from ..freshness import Verdict
 from ..freshness import describe as describe_verdict
 from ..fsutil import make_private_dir
 from ..inflight import read_beat, slot_path
@@ -222,7 +223,7 @@ class ManagedNode:
         self.gate_reason = ''
         self.fatal_reason: str | None = None
         # What the last recovery did with each key variable (freshness.py's verdict).
-        self.last_freshness: dict[str, Any] | None = None
+        self.last_freshness: Verdict | None = None
 
         def on_status(msg: Any) -> None:
             sup.post_status(cfg.name, str(msg.data))
@@ -520,7 +521,7 @@ class ManagedNode:
         if hello.restored is not None:
             freshness = hello.restored.freshness
             self.last_freshness = freshness
-            if freshness.get('refused'):
+            if freshness.refused:
                 self._refuse_stale(freshness)
                 return
         if self.recovery is not None:
@@ -540,17 +541,16 @@ class ManagedNode:
                                      f'replay after segment {_restored_cut(hello)}')
             self._send_sync()
 
-    def _refuse_stale(self, verdict: dict[str, Any]) -> None:
+    def _refuse_stale(self, verdict: Verdict) -> None:
         """A stale variable whose rule is ``refuse``: the node does not run on its checkpoint
         (freshness.py); an operator decides (raise max_age, or start it fresh)."""
-        age_s = verdict.get('age_s')
-        age = 'unknown' if age_s is None else f'{float(age_s):.1f} s'
-        reason = (f'checkpoint too old for {", ".join(map(str, verdict.get("refused", [])))} '
-                  f'(age {age} on the {verdict.get("clock")} clock; on_stale: refuse): not '
+        age = 'unknown' if verdict.age_s is None else f'{verdict.age_s:.1f} s'
+        reason = (f'checkpoint too old for {", ".join(verdict.refused)} '
+                  f'(age {age} on the {verdict.clock} clock; on_stale: refuse): not '
                   'started, the safe state is held; start it fresh (rory supervise --fresh) or '
                   'raise max_age in keyvars.yaml')
         _logger.error('%s %s: %s', LOG_PREFIX, self.id, reason)
-        self._give_up(reason, freshness=verdict)
+        self._give_up(reason, freshness=verdict.to_json())
 
     def _on_inputs(self, status: InputsStatus) -> None:
         """The node made a subscription after HELLO: read that topic in the ring too."""
@@ -670,7 +670,7 @@ class ManagedNode:
             )
             verdict = self.last_freshness
             if verdict is not None and self.cfg.method.checkpoints:
-                level = (logging.WARNING if verdict.get('reset') or verdict.get('kept_stale')
+                level = (logging.WARNING if verdict.reset or verdict.kept_stale
                          else logging.INFO)
                 _logger.log(level, '%s %s: %s', LOG_PREFIX, self.id,
                             describe_verdict(verdict))
@@ -688,7 +688,9 @@ class ManagedNode:
                 'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
                 incarnation=self.incarnation, replay=pace, **timing, **_recovery_counts(stats),
                 input_gaps=[g.to_json() for g in gaps], r_log=rec.r_summary(),
-                never_delivered=never, freshness=self.last_freshness, gate_ms=gate_ms,
+                never_delivered=never,
+                freshness=None if self.last_freshness is None else self.last_freshness.to_json(),
+                gate_ms=gate_ms,
                 gate=gate_reason,
             )
             if rec.ring is None or not rec.ring.active_topics:

@@ -40,7 +40,7 @@ def test_each_outcome_and_an_unknown_age_counting_as_stale() -> None:
         ['map', 'count'], ['pose'], ['goal'], ['global:mode'])
     unknown = judge(keys, rules, None, ClockReading(110 * S, False))
     assert unknown.restored == ['count'] and unknown.reset == ['map', 'pose']
-    assert describe(old.to_json()) == (
+    assert describe(old) == (
         'restored: map, count; stale, refused: global:mode (max_age 5 s); stale, reset: pose '
         '(max_age 5 s); stale, kept: goal (max_age 5 s) (checkpoint age 10.0 s, system clock)')
 

@@ -15,6 +15,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import UInt8MultiArray
 
 from rory_runtime.errors import ProtocolError
+from rory_runtime.freshness import Verdict
 from rory_runtime.protocol import (
     FLAG_RELAY,
     SEQ_MASK,
@@ -377,9 +378,8 @@ STATUSES: dict[str, Status] = {
         restored=RestoredCheckpoint(
             seq=7, cut=12, created_ns=1_699_999_999_000_000_000, parameters=('gain',),
             lifecycle='active',
-            freshness={'age_s': 1.234, 'clock': 'system', 'restored': ['count', 'pose'],
-                       'reset': [], 'kept_stale': [], 'refused': [],
-                       'max_age': {'pose': 5.0}}),
+            freshness=Verdict(age_s=1.234, clock='system', restored=['count', 'pose'],
+                              max_age={'pose': 5.0})),
         refused=('checkpoint 8: checksum mismatch',), restore_ms=3.5, process_start_ns=None,
         interval=0.5, replay='paced', dds_profile='/tmp/profile.xml', dds_transports='UDPv4'),
     'hello_whole_interval': HelloStatus(
@@ -568,6 +568,39 @@ def test_a_field_missing_or_of_the_wrong_type_is_named(
     obj.update(change)
     obj = {k: v for k, v in obj.items() if v is not None or k not in change}  # None: left out
     with pytest.raises(ProtocolError, match=re.escape(error)):
+        decode_status(json.dumps(obj))
+
+
+@pytest.mark.parametrize(
+    ('change', 'error'),
+    [
+        ({'age_s': 'old'}, 'restored.freshness.age_s must be a number or null, not a string'),
+        ({'clock': None}, 'hello status lacks restored.freshness.clock'),
+        ({'reset': 'pose'}, 'restored.freshness.reset must be an array of strings, not a string'),
+        ({'max_age': {'pose': '5'}},
+         'restored.freshness.max_age must be an object of numbers, not an object'),
+    ],
+)
+def test_a_bad_field_of_the_freshness_verdict_is_named(change: dict[str, object],
+                                                        error: str) -> None:
+    obj = json.loads(encode_status(STATUSES['hello_recover'], 'n', 1, sent_ns=SENT_NS))
+    verdict = obj['restored']['freshness']
+    verdict.update(change)
+    obj['restored']['freshness'] = {k: v for k, v in verdict.items() if v is not None}
+    with pytest.raises(ProtocolError, match=re.escape(error)):
+        decode_status(json.dumps(obj))
+
+
+def test_a_verdict_comes_back_as_it_went() -> None:
+    hello = STATUSES['hello_recover']
+    decoded = decode_status(encode_status(hello, 'n', 1, sent_ns=SENT_NS)).status
+    assert isinstance(decoded, HelloStatus) and decoded.restored is not None
+    assert decoded.restored.freshness == Verdict(age_s=1.234, clock='system',
+                                                 restored=['count', 'pose'],
+                                                 max_age={'pose': 5.0})
+    obj = json.loads(encode_status(hello, 'n', 1, sent_ns=SENT_NS))
+    obj['restored']['freshness'] = None
+    with pytest.raises(ProtocolError, match=re.escape('restored.freshness must be an object')):
         decode_status(json.dumps(obj))
 
 

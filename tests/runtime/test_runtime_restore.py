@@ -75,9 +75,9 @@ def test_a_fresh_checkpoint_restores_every_variable(tmp_path: Path) -> None:
     assert (node.total, node.pose) == (10, 'saved pose')
     assert restored is not None
     verdict = restored.freshness
-    assert verdict['restored'] == ['total', 'pose'] and verdict['reset'] == []
-    assert verdict['clock'] == 'system' and 1.0 <= verdict['age_s'] < 3.0
-    assert verdict['max_age'] == {'pose': 5.0}
+    assert verdict.restored == ['total', 'pose'] and verdict.reset == []
+    assert verdict.clock == 'system' and 1.0 <= verdict.age_s < 3.0
+    assert verdict.max_age == {'pose': 5.0}
 
 
 def test_a_stale_variable_is_reset_and_the_rest_restored(tmp_path: Path) -> None:
@@ -85,22 +85,22 @@ def test_a_stale_variable_is_reset_and_the_rest_restored(tmp_path: Path) -> None
     node, restored = _restore(tmp_path, 'reset')
     assert (node.total, node.pose) == (10, 'initial pose')  # __init__'s value stays
     assert restored is not None
-    assert restored.freshness['restored'] == ['total']
-    assert restored.freshness['reset'] == ['pose']
+    assert restored.freshness.restored == ['total']
+    assert restored.freshness.reset == ['pose']
 
 
 def test_a_stale_variable_under_keep_is_restored_and_reported(tmp_path: Path) -> None:
     _aged(tmp_path, 30.0)
     node, restored = _restore(tmp_path, 'keep')
     assert (node.total, node.pose) == (10, 'saved pose')
-    assert restored is not None and restored.freshness['kept_stale'] == ['pose']
+    assert restored is not None and restored.freshness.kept_stale == ['pose']
 
 
 def test_a_stale_variable_under_refuse_restores_nothing(tmp_path: Path) -> None:
     _aged(tmp_path, 30.0)
     node, restored = _restore(tmp_path, 'refuse')
     assert (node.total, node.pose) == (0, 'initial pose')
-    assert restored is not None and restored.freshness['refused'] == ['pose']
+    assert restored is not None and restored.freshness.refused == ['pose']
 
 
 def test_under_sim_time_the_age_is_simulation_time(tmp_path: Path) -> None:
@@ -108,10 +108,10 @@ def test_under_sim_time_the_age_is_simulation_time(tmp_path: Path) -> None:
     _aged(tmp_path, 3600.0, sim_taken_s=100.0)
     node, restored = _restore(tmp_path, 'reset', _Node(sim_now_s=103.0))
     assert node.pose == 'saved pose'
-    assert restored is not None and restored.freshness['clock'] == 'sim'
-    assert abs(restored.freshness['age_s'] - 3.0) < 1e-6
+    assert restored is not None and restored.freshness.clock == 'sim'
+    assert abs(restored.freshness.age_s - 3.0) < 1e-6
     _, restored = _restore(tmp_path, 'reset', _Node(sim_now_s=110.0))
-    assert restored is not None and restored.freshness['reset'] == ['pose']
+    assert restored is not None and restored.freshness.reset == ['pose']
 
 
 def test_an_age_that_cannot_be_known_is_stale(tmp_path: Path) -> None:
@@ -119,7 +119,7 @@ def test_an_age_that_cannot_be_known_is_stale(tmp_path: Path) -> None:
     _aged(tmp_path, 1.0, sim_taken_s=100.0)
     node, restored = _restore(tmp_path, 'reset', _Node(sim_now_s=2.0))
     assert node.pose == 'initial pose'
-    assert restored is not None and restored.freshness['age_s'] is None
+    assert restored is not None and restored.freshness.age_s is None
     # Taken on the system clock, judged under simulation time.
     (tmp_path / 'n').rename(tmp_path / 'old')
     _aged(tmp_path, 1.0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 
+from rory_runtime.freshness import Verdict
 from rory_runtime.supervisor.diagnostics import NodeHealth, level_of, node_status
 from rory_runtime.supervisor.states import NodeState
 from rory_runtime.supervisor.supervisor import CHECKPOINT_FAILURE_RE
@@ -74,8 +75,8 @@ def test_a_refused_start_says_why() -> None:
 
 
 def test_the_last_restore_says_what_was_restored_reset_and_kept_stale() -> None:
-    verdict = {'age_s': 12.345, 'clock': 'system', 'restored': ['map', 'count'],
-               'reset': ['pose'], 'kept_stale': ['goal'], 'refused': [], 'max_age': {}}
+    verdict = Verdict(age_s=12.345, clock='system', restored=['map', 'count'], reset=['pose'],
+                      kept_stale=['goal'])
     values = {kv.key: kv.value for kv in node_status(_health(NodeState.RUNNING,
                                                              freshness=verdict)).values}
     assert values['last restore: checkpoint age (s)'] == '12.3'

@@ -16,6 +16,7 @@ import pytest
 from fake_supervisor import INPUT, Harness
 
 from rory_runtime import protocol
+from rory_runtime.freshness import Verdict
 from rory_runtime.log import LogEntry
 from rory_runtime.protocol import OpenedStatus, RestoredCheckpoint, SwitchedStatus
 from rory_runtime.supervisor.recovery import RecoveryLog
@@ -267,8 +268,7 @@ def test_a_stale_variable_under_refuse_stops_the_node_with_the_safe_state_held(
 ) -> None:
     h = _started(tmp_path, method='checkpoint')
     h.exit(-signal.SIGKILL)
-    verdict = {'age_s': 42.0, 'clock': 'system', 'restored': [], 'reset': [],
-               'kept_stale': [], 'refused': ['pose'], 'max_age': {'pose': 5.0}}
+    verdict = Verdict(age_s=42.0, clock='system', refused=['pose'], max_age={'pose': 5.0})
     h.hello(restored=RestoredCheckpoint(seq=3, cut=None, created_ns=1, parameters=(),
                                         lifecycle=None, freshness=verdict))
     assert h.node.sm.state == S.FATAL and h.child.signals == [signal.SIGKILL]

@@ -41,6 +41,7 @@ from typing import Any
 
 import yaml
 
+from rory_eval.bench.light_node_bench import alternating
 from rory_eval.harness.simrun import SimRun, exit_on_sigterm, store_events
 from rory_eval.harness.stack import GOAL_XY, Strike, Striker, instrument
 from rory_eval.targets import TARGETS
@@ -251,17 +252,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     exit_on_sigterm()
     out = args.out.resolve()
     runs: list[dict[str, Any]] = []
-    configs = [c for c in CONFIGS if c in args.configs]
-    for i in range(args.runs):
-        order = configs if i % 2 == 0 else list(reversed(configs))
-        for config in order:
-            began = time.monotonic()
-            record = run_once(config, args.world, out / 'runs' / f'{config}-{i}', args.domain)
-            runs.append(record)
-            print(f'[{i + 1}/{args.runs}] {config}: {record["cpu_percent"]:.1f}% of a core, '
-                  f'{record["pss_mb"]:.0f} MB PSS, goal '
-                  f'{"reached" if record["goal_reached"] else "NOT reached"} '
-                  f'({time.monotonic() - began:.0f} s)', flush=True)
+    for i, config in alternating([c for c in CONFIGS if c in args.configs], args.runs):
+        began = time.monotonic()
+        record = run_once(config, args.world, out / 'runs' / f'{config}-{i}', args.domain)
+        runs.append(record)
+        print(f'[{i + 1}/{args.runs}] {config}: {record["cpu_percent"]:.1f}% of a core, '
+              f'{record["pss_mb"]:.0f} MB PSS, goal '
+              f'{"reached" if record["goal_reached"] else "NOT reached"} '
+              f'({time.monotonic() - began:.0f} s)', flush=True)
     struck = []
     for i in range(args.strike_runs):
         record = run_once('rory', args.world, out / 'runs' / f'strikes-{i}', args.domain,

@@ -3,7 +3,10 @@
 A node logs every message it applies, so its log ends where it died. What it had received but
 not yet applied, and everything published while it is down, would be lost; the *ring* holds it.
 For each input topic of a supervised node the supervisor keeps a reader with the node's QoS and
-a keep-last history of :func:`~rory_runtime.protocol.ring_depth` messages.
+a keep-last history of :func:`~rory_runtime.protocol.ring_depth` messages. Nodes that read a
+topic with the same type and QoS share one reader (:class:`SharedReader`): in a stack most
+nodes read ``/odom`` and ``/scan``, and every reader costs the supervisor DDS's receive work
+per message (docs/performance.md, "The ring: one reader per topic for the whole stack").
 
 Passive, the ring costs next to nothing: nothing takes from its readers, so DDS keeps the last N
 messages and no Python runs per message (measured: a passive reader 0.4% of a core at 60 msg/s
@@ -101,25 +104,51 @@ class RingContext:
         # node per reader, as the ring had when an executor spun each topic's, was ~16 DDS
         # endpoints each).
         self.node = quiet_node('_rory_ring', context)
-        self._active: list[RingTopic] = []
+        self._active: list[SharedReader] = []
+        self._readers: dict[InputSpec, SharedReader] = {}
         self._lock = threading.Lock()
         self._guard = GuardCondition(None, None, context=context)
         self._running = True
         self._thread = threading.Thread(target=self._spin, name='rory-ring', daemon=True)
         self._thread.start()
 
-    def watch(self, topic: RingTopic) -> None:
-        """Take ``topic``'s messages as they come."""
+    def acquire(self, spec: InputSpec) -> SharedReader:
+        """The reader of ``spec`` (topic, type and QoS), made by its first user."""
         with self._lock:
-            if topic not in self._active:
-                self._active.append(topic)
+            reader = self._readers.get(spec)
+            if reader is None:
+                reader = self._readers[spec] = SharedReader(self, spec)
+            reader.users += 1
+            return reader
+
+    def release(self, reader: SharedReader) -> None:
+        """One user less; the last one's release removes the reader."""
+        with self._lock:
+            reader.users -= 1
+            if reader.users > 0:
+                return
+            if self._readers.get(reader.spec) is reader:
+                del self._readers[reader.spec]
+        reader.destroy()
+
+    @property
+    def reader_count(self) -> int:
+        """DDS readers the ring has, all nodes together."""
+        with self._lock:
+            return len(self._readers)
+
+    def watch(self, reader: SharedReader) -> None:
+        """Take ``reader``'s messages as they come."""
+        with self._lock:
+            if reader not in self._active:
+                self._active.append(reader)
         self._guard.trigger()
 
-    def unwatch(self, topic: RingTopic) -> None:
-        """Stop taking ``topic``'s messages (DDS keeps its history again)."""
+    def unwatch(self, reader: SharedReader) -> None:
+        """Stop taking ``reader``'s messages (DDS keeps its history again)."""
         with self._lock:
-            if topic in self._active:
-                self._active.remove(topic)
+            if reader in self._active:
+                self._active.remove(reader)
         self._guard.trigger()
 
     def _spin(self) -> None:
@@ -133,7 +162,7 @@ class RingContext:
                 if self._running:
                     _logger.exception('[rory] ring error')
 
-    def _wait_and_take(self, readers: list[RingTopic]) -> None:
+    def _wait_and_take(self, readers: list[SharedReader]) -> None:
         with contextlib.ExitStack() as held:
             handles = []
             for reader in readers:
@@ -171,13 +200,20 @@ class RingContext:
             self.context.try_shutdown()
 
 
-class RingTopic:
-    """The supervisor's reader of one input topic of one node."""
+class SharedReader:
+    """The supervisor's reader of one input topic with one type and QoS, for every node that
+    reads it so (:class:`RingTopic` is one node's view of it).
+
+    Its history, with what activations took (:attr:`retained`), is the newest ``depth``
+    messages of the topic, whichever node's activation took them: what each node's own passive
+    reader would hold.
+    """
 
     def __init__(self, ring_ctx: RingContext, spec: InputSpec) -> None:
         self.spec = spec
         self.depth = ring_depth(spec)
         self._ctx = ring_ctx
+        self.users = 0
         msg_type = get_message_class(spec.msgtype)
         self.node = ring_ctx.node
         qos = QoSProfile(
@@ -202,10 +238,9 @@ class RingTopic:
         # Entries taken while active. DDS no longer holds them, so the next activation gets
         # them from here; with what DDS holds, the newest ``depth`` are "the last N".
         self.retained: deque[LogEntry] = deque(maxlen=self.depth)
-        self._sink: RingSink | None = None
-        self._deliver: Any = None
+        # The active views' delivery, in activation order.
+        self._delivers: dict[RingTopic, Any] = {}
         self._lock = threading.Lock()
-        self.active = False
 
     def _entry(self, taken: Taken) -> LogEntry:
         return LogEntry(
@@ -219,7 +254,7 @@ class RingTopic:
         )
 
     def take_new(self) -> None:
-        """Take what DDS holds now and deliver it (the ring's thread, while active)."""
+        """Take what DDS holds now and deliver it to each active view (the ring's thread)."""
         with self._lock:
             # Everything waiting, not one message per wait (a wait rebuilds the wait set, many
             # times the cost of a take), so the history is emptied as soon as this thread
@@ -228,8 +263,8 @@ class RingTopic:
             # by DDS itself; R's sequence check reports it.
             entries = self._take_waiting()
             self.retained.extend(entries)
-            deliver = self._deliver
-        if deliver is not None:
+            delivers = list(self._delivers.values())
+        for deliver in delivers:
             for entry in entries:
                 deliver(entry)
 
@@ -245,42 +280,79 @@ class RingTopic:
         """Publishers this reader is matched with."""
         return self.sub.get_publisher_count()
 
+    def activate(self, view: RingTopic, deliver: Any) -> list[LogEntry]:
+        """See :meth:`RingTopic.activate`."""
+        with self._lock:
+            taken = self._take_waiting()
+            self.retained.extend(taken)
+            held = list(self.retained)
+            first = not self._delivers
+            self._delivers[view] = deliver
+            if first:
+                self._ctx.watch(self)
+        held.sort(key=lambda e: e.recv_ns)
+        return held
+
+    def deactivate(self, view: RingTopic) -> None:
+        """``view`` takes no more; with no active view left, back to passive."""
+        with self._lock:
+            if self._delivers.pop(view, None) is not None and not self._delivers:
+                self._ctx.unwatch(self)
+
+    def destroy(self) -> None:
+        """Remove the DDS reader (its last user has released it)."""
+        with self._lock:
+            if self._delivers:
+                self._delivers.clear()
+                self._ctx.unwatch(self)
+            self._taker.close()
+        self.node.destroy_subscription(self.sub)
+
+
+class RingTopic:
+    """One supervised node's reader of one input topic: a view of the :class:`SharedReader`
+    of that topic and QoS."""
+
+    def __init__(self, ring_ctx: RingContext, spec: InputSpec) -> None:
+        self.spec = spec
+        self._ctx = ring_ctx
+        self.reader = ring_ctx.acquire(spec)
+        self.depth = self.reader.depth
+        self.node = ring_ctx.node
+        self.active = False
+        self._destroyed = False
+
+    def publisher_count(self) -> int:
+        """Publishers the reader is matched with."""
+        return self.reader.publisher_count()
+
     def activate(self, deliver: Any) -> list[LogEntry]:
         """Take everything held now; new messages go to ``deliver`` from then on.
 
         Returns:
             The newest :attr:`depth` messages the ring has had (taken earlier while active,
-            and what DDS holds), in receive order: what a reader that was never taken from
-            would hold. Older ones were the node's long before its crash; keeping them would
-            hand the recovery messages applied outside every window it can check (issue 21's
-            duplicates). The caller must deliver them before anything ``deliver`` receives:
-            see :meth:`Ring.activate`.
+            for this node or another that shares the reader, and what DDS holds), in receive
+            order: what a reader that was never taken from would hold. Older ones were the
+            node's long before its crash; keeping them would hand the recovery messages
+            applied outside every window it can check (issue 21's duplicates). The caller
+            must deliver them before anything ``deliver`` receives: see :meth:`Ring.activate`.
         """
-        with self._lock:
-            taken = self._take_waiting()
-            self.retained.extend(taken)
-            held = list(self.retained)
-            self._deliver = deliver
-        if not self.active:
-            self.active = True
-            self._ctx.watch(self)
-        held.sort(key=lambda e: e.recv_ns)
+        held = self.reader.activate(self, deliver)
+        self.active = True
         return held
 
     def deactivate(self) -> None:
-        """Back to passive: DDS keeps the history again."""
-        with self._lock:
-            self._deliver = None
-        if self.active:
-            self.active = False
-            self._ctx.unwatch(self)
+        """Back to passive for this node."""
+        self.reader.deactivate(self)
+        self.active = False
 
     def destroy(self) -> None:
-        """Remove the reader."""
+        """This node reads the topic no more (the reader goes with its last user)."""
+        if self._destroyed:
+            return
+        self._destroyed = True
         self.deactivate()
-        with self._lock:
-            self._taker.close()
-        self.node.destroy_subscription(self.sub)
+        self._ctx.release(self.reader)
 
 
 def _never_called(_raw: bytes, _info: Any) -> None:

@@ -190,3 +190,72 @@ def test_each_message_carries_its_publishers_gid(ros_domain: int, ring: Ring) ->
         by_publisher.setdefault(e.publisher, []).append(e.seq)
     assert len(by_publisher) == 2 and all(p is not None and len(p) == 16 for p in by_publisher)
     assert sorted(by_publisher.values()) == [[1, 2, 3, 4, 5], [1, 2, 3, 4, 5]]
+
+
+def test_nodes_reading_a_topic_alike_share_one_reader(ros_domain: int) -> None:
+    # In a stack most nodes read /odom and /scan with the same QoS: one DDS reader serves all of
+    # them, and each node's activation still gets the newest `depth` messages, whichever node's
+    # activation took them from DDS. A node with another QoS has its own reader.
+    ctx = RingContext(domain_id=ros_domain)
+    first, second, other = Ring(ctx, 'first'), Ring(ctx, 'second'), Ring(ctx, 'other')
+    other_spec = InputSpec(SPEC.topic, SPEC.msgtype, True, False, 50)
+    first.ensure([SPEC])
+    second.ensure([SPEC])
+    other.ensure([other_spec])
+    pub_ctx = Context()
+    rclpy.init(context=pub_ctx, domain_id=ros_domain)
+    pub_node = Node('shared_publisher', context=pub_ctx)
+    pub = pub_node.create_publisher(Int64, SPEC.topic, QoSProfile(depth=1000))
+    depth = ring_depth(SPEC)
+    try:
+        assert ctx.reader_count == 2
+        assert len(list(ctx.node.subscriptions)) == 2
+        deadline = time.monotonic() + 10.0
+        while (any(r.publisher_count(SPEC.topic) < 1 for r in (first, second, other))
+               or pub.get_subscription_count() < 2):
+            assert time.monotonic() < deadline, 'ring readers and publisher never matched'
+            time.sleep(0.01)
+        for n in range(1, 11):
+            pub.publish(Int64(data=n))
+        pub.wait_for_all_acked(Duration(seconds=5.0))
+        taken_first = Capture()
+        first.activate(taken_first)
+        assert [e.seq for e in taken_first] == list(range(1, 11))
+        # While the first node's view is active, its messages are taken from DDS as they come;
+        # the second node's view still holds them.
+        for n in range(11, depth + 21):
+            pub.publish(Int64(data=n))
+            time.sleep(0.002)  # no burst beyond the history: that is another test
+        _settle(pub, taken_first, depth + 20)
+        assert [e.seq for e in taken_first] == list(range(1, depth + 21))
+        taken_second = Capture()
+        second.activate(taken_second)
+        assert [e.seq for e in taken_second] == list(range(21, depth + 21))
+        # Both active: each new message reaches both, once.
+        pub.publish(Int64(data=0))
+        _settle(pub, taken_second, depth + 21)
+        assert taken_first[-1].seq == taken_second[-1].seq == depth + 21
+        assert [e.seq for e in taken_first].count(depth + 21) == 1
+        # One node leaving keeps the reader for the other; the last one removes it.
+        first.deactivate()
+        for topic in first.topics.values():
+            topic.destroy()
+        assert ctx.reader_count == 2
+        pub.publish(Int64(data=0))
+        _settle(pub, taken_second, depth + 22)
+        assert taken_first[-1].seq == depth + 21
+        for topic in second.topics.values():
+            topic.destroy()
+        assert ctx.reader_count == 1
+        assert len(list(ctx.node.subscriptions)) == 1
+        # The reader of the other QoS kept its own history all along.
+        taken_other = Capture()
+        other.activate(taken_other)
+        assert ring_depth(other_spec) > depth + 22  # so it holds every message sent
+        assert [e.seq for e in taken_other] == list(range(1, depth + 23))
+    finally:
+        for topic in other.topics.values():
+            topic.destroy()
+        pub_node.destroy_node()
+        pub_ctx.try_shutdown()
+        ctx.shutdown()

@@ -5,9 +5,11 @@
 
 A node that does almost nothing per message (``examples/scan_sink``: a count and a stamp)
 takes LaserScans (360 beams with intensities) at ``--rate`` Hz for ``--seconds`` s, bare and
-under ``rory supervise`` in two configurations: ``restart`` (the runtime's fixed path: raw
-delivery, deserialising in Python, the in-flight slot, the output gate) and ``rory`` (that,
-and the write-ahead log, checkpoints and the supervisor's ring; a warm standby). The node
+under RORY's DDS profile (``bare_udp``: UDPv4 on 127.0.0.1, no shared memory; the profile every
+process under RORY gets) and under ``rory supervise`` in two configurations: ``restart`` (the
+runtime's fixed path: raw delivery, deserialising in Python, the in-flight slot, the output
+gate) and ``rory`` (that, and the write-ahead log, checkpoints and the supervisor's ring; a
+warm standby). The node
 process's own CPU time over the publishing window, divided by the messages it took, is its
 cost per message; the difference to bare is RORY's. At a rate this high the per-message cost
 outweighs the fixed ones (the heartbeat's 5 wake-ups a second, a checkpoint every 2 s).
@@ -39,6 +41,7 @@ from rory_eval.bench.light_node_bench import alternating, plain_env
 from rory_eval.harness.process_usage import read_process
 from rory_eval.harness.scenario import Program, prepare, stop_process
 from rory_eval.harness.simrun import exit_on_sigterm
+from rory_runtime.dds import fast_rediscovery_env
 
 REPO = Path(__file__).resolve().parents[2]
 SINK = REPO / 'examples' / 'scan_sink'
@@ -48,15 +51,17 @@ PROGRAMS = {
     'tick': Program(TICKS, TICKS / 'keyvars.yaml', 'tick_sink.py', '/unused', 'tick_sink'),
 }
 TICK_RATE = 500.0  # examples/tick_sink's timer
-CONFIGS = ('bare', 'restart', 'rory')
+CONFIGS = ('bare', 'bare_udp', 'restart', 'rory')
 _TICK = float(os.sysconf('SC_CLK_TCK'))
 
 PUBLISHER = r'''
-import sys, time, array, rclpy
+import signal, sys, time, array, rclpy
+signal.signal(signal.SIGINT, signal.SIG_DFL)  # stopped when done: no traceback in the bench's output
 from rclpy.qos import QoSProfile
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import LaserScan
 count, rate, readers = int(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3])
-rclpy.init()
+rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
 node = rclpy.create_node('scan_source')
 pub = node.create_publisher(LaserScan, '/scan', QoSProfile(depth=1000))
 msg = LaserScan()
@@ -81,7 +86,7 @@ print('end', flush=True)
 
 def _node_pid(root: int, config: str, deadline: float, program: Program) -> int:
     """The node's process: the root when bare, else the supervisor's child running it."""
-    if config == 'bare':
+    if config in ('bare', 'bare_udp'):
         return root
     while time.monotonic() < deadline:
         for entry in Path('/proc').iterdir():
@@ -102,7 +107,7 @@ def run_ticks(config: str, workdir: Path, domain: int, seconds: float) -> dict[s
     workdir.mkdir(parents=True, exist_ok=True)
     program = PROGRAMS['tick']
     with (workdir / f'{config}.log').open('wb') as log:
-        root = subprocess.Popen(_command(config, workdir, program), env=plain_env(domain),
+        root = subprocess.Popen(_command(config, workdir, program), env=_node_env(config, domain),
                                 cwd=workdir, stdout=log, stderr=subprocess.STDOUT,
                                 start_new_session=True)
         try:
@@ -123,8 +128,17 @@ def run_ticks(config: str, workdir: Path, domain: int, seconds: float) -> dict[s
             'us_per_message': 1e6 * cpu / ticks}
 
 
+def _node_env(config: str, domain: int) -> dict[str, str]:
+    """The node's environment: a user's shell, with RORY's DDS profile for ``bare_udp`` (the
+    supervisor gives it to its tree itself)."""
+    env = plain_env(domain)
+    if config == 'bare_udp':
+        env.update(fast_rediscovery_env(env))
+    return env
+
+
 def _command(config: str, workdir: Path, program: Program) -> list[str]:
-    if config == 'bare':
+    if config in ('bare', 'bare_udp'):
         return [sys.executable, str(program.source / program.file)]
     supervise = prepare(workdir, config, interval=None, pace=None, program=program)
     return [sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(supervise)]
@@ -140,8 +154,8 @@ def run_once(config: str, workdir: Path, domain: int, rate: float,
     readers = '2' if config == 'rory' else '1'  # the ring reads too
     count = int(rate * seconds)
     with (workdir / f'{config}.log').open('wb') as log:
-        root = subprocess.Popen(command, env=env, cwd=workdir, stdout=log,
-                                stderr=subprocess.STDOUT, start_new_session=True)
+        root = subprocess.Popen(command, env=_node_env(config, domain), cwd=workdir,
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         publisher = subprocess.Popen([sys.executable, '-c', PUBLISHER, str(count), str(rate),
                                       readers], env=env, cwd=workdir, stdout=subprocess.PIPE,
                                      text=True, start_new_session=True)

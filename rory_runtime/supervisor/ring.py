@@ -4,9 +4,11 @@ A node logs every message it applies, so its log ends where it died. What it had
 not yet applied, and everything published while it is down, would be lost; the *ring* holds it.
 For each input topic of a supervised node the supervisor keeps a reader with the node's QoS and
 a keep-last history of :func:`~rory_runtime.protocol.ring_depth` messages. Nodes that read a
-topic with the same type and QoS share one reader (:class:`SharedReader`): in a stack most
-nodes read ``/odom`` and ``/scan``, and every reader costs the supervisor DDS's receive work
-per message (docs/performance.md, "The ring: one reader per topic for the whole stack").
+topic with the same type, reliability and durability share one reader (:class:`SharedReader`)
+whose history is at least as deep as each of theirs; each node is still handed only its own
+depth. In a stack most nodes read ``/odom`` and ``/scan``, and every reader costs the
+supervisor DDS's receive work per message (docs/performance.md, "The ring: one reader per
+topic for the whole stack").
 
 Passive, the ring costs next to nothing: nothing takes from its readers, so DDS keeps the last N
 messages and no Python runs per message (measured: a passive reader 0.4% of a core at 60 msg/s
@@ -105,7 +107,7 @@ class RingContext:
         # endpoints each).
         self.node = quiet_node('_rory_ring', context)
         self._active: list[SharedReader] = []
-        self._readers: dict[InputSpec, SharedReader] = {}
+        self._readers: list[SharedReader] = []
         self._lock = threading.Lock()
         self._guard = GuardCondition(None, None, context=context)
         self._running = True
@@ -113,11 +115,14 @@ class RingContext:
         self._thread.start()
 
     def acquire(self, spec: InputSpec) -> SharedReader:
-        """The reader of ``spec`` (topic, type and QoS), made by its first user."""
+        """A reader of ``spec``'s topic, type, reliability and durability whose history holds
+        at least ``spec``'s ring depth: one that exists, else a new one."""
+        depth = ring_depth(spec)
         with self._lock:
-            reader = self._readers.get(spec)
+            reader = next((r for r in self._readers if r.serves(spec, depth)), None)
             if reader is None:
-                reader = self._readers[spec] = SharedReader(self, spec)
+                reader = SharedReader(self, spec)
+                self._readers.append(reader)
             reader.users += 1
             return reader
 
@@ -127,8 +132,8 @@ class RingContext:
             reader.users -= 1
             if reader.users > 0:
                 return
-            if self._readers.get(reader.spec) is reader:
-                del self._readers[reader.spec]
+            if reader in self._readers:
+                self._readers.remove(reader)
         reader.destroy()
 
     @property
@@ -201,12 +206,13 @@ class RingContext:
 
 
 class SharedReader:
-    """The supervisor's reader of one input topic with one type and QoS, for every node that
-    reads it so (:class:`RingTopic` is one node's view of it).
+    """The supervisor's reader of one input topic, for every node that reads it with the same
+    type, reliability and durability and no deeper history (:class:`RingTopic` is one node's
+    view of it).
 
     Its history, with what activations took (:attr:`retained`), is the newest ``depth``
-    messages of the topic, whichever node's activation took them: what each node's own passive
-    reader would hold.
+    messages of the topic, whichever node's activation took them; the newest ``d`` of them are
+    what a node's own passive reader of depth ``d`` would hold.
     """
 
     def __init__(self, ring_ctx: RingContext, spec: InputSpec) -> None:
@@ -241,6 +247,12 @@ class SharedReader:
         # The active views' delivery, in activation order.
         self._delivers: dict[RingTopic, Any] = {}
         self._lock = threading.Lock()
+
+    def serves(self, spec: InputSpec, depth: int) -> bool:
+        """Whether a node reading ``spec`` with ring depth ``depth`` can share this reader."""
+        mine = self.spec
+        return (mine.topic, mine.msgtype, mine.reliable, mine.transient_local) == (
+            spec.topic, spec.msgtype, spec.reliable, spec.transient_local) and self.depth >= depth
 
     def _entry(self, taken: Taken) -> LogEntry:
         return LogEntry(
@@ -281,7 +293,8 @@ class SharedReader:
         return self.sub.get_publisher_count()
 
     def activate(self, view: RingTopic, deliver: Any) -> list[LogEntry]:
-        """See :meth:`RingTopic.activate`."""
+        """The newest ``view.depth`` messages, in receive order; see :meth:`RingTopic.activate`.
+        """
         with self._lock:
             taken = self._take_waiting()
             self.retained.extend(taken)
@@ -291,7 +304,9 @@ class SharedReader:
             if first:
                 self._ctx.watch(self)
         held.sort(key=lambda e: e.recv_ns)
-        return held
+        # Never more than the node's own depth: the node's window of applied identities is
+        # sized to absorb that many (protocol.window_size), no more.
+        return held[-view.depth:]
 
     def deactivate(self, view: RingTopic) -> None:
         """``view`` takes no more; with no active view left, back to passive."""
@@ -317,7 +332,7 @@ class RingTopic:
         self.spec = spec
         self._ctx = ring_ctx
         self.reader = ring_ctx.acquire(spec)
-        self.depth = self.reader.depth
+        self.depth = ring_depth(spec)
         self.node = ring_ctx.node
         self.active = False
         self._destroyed = False

@@ -195,13 +195,18 @@ def test_each_message_carries_its_publishers_gid(ros_domain: int, ring: Ring) ->
 def test_nodes_reading_a_topic_alike_share_one_reader(ros_domain: int) -> None:
     # In a stack most nodes read /odom and /scan with the same QoS: one DDS reader serves all of
     # them, and each node's activation still gets the newest `depth` messages, whichever node's
-    # activation took them from DDS. A node with another QoS has its own reader.
+    # activation took them from DDS. A node with a shallower queue shares it and is handed only
+    # its own depth (its window absorbs no more); one with a deeper queue than the reader's
+    # history has its own reader.
     ctx = RingContext(domain_id=ros_domain)
     first, second, other = Ring(ctx, 'first'), Ring(ctx, 'second'), Ring(ctx, 'other')
+    small = Ring(ctx, 'small')
     other_spec = InputSpec(SPEC.topic, SPEC.msgtype, True, False, 50)
+    small_spec = InputSpec(SPEC.topic, SPEC.msgtype, True, False, 5)
     first.ensure([SPEC])
     second.ensure([SPEC])
     other.ensure([other_spec])
+    small.ensure([small_spec])
     pub_ctx = Context()
     rclpy.init(context=pub_ctx, domain_id=ros_domain)
     pub_node = Node('shared_publisher', context=pub_ctx)
@@ -211,7 +216,7 @@ def test_nodes_reading_a_topic_alike_share_one_reader(ros_domain: int) -> None:
         assert ctx.reader_count == 2
         assert len(list(ctx.node.subscriptions)) == 2
         deadline = time.monotonic() + 10.0
-        while (any(r.publisher_count(SPEC.topic) < 1 for r in (first, second, other))
+        while (any(r.publisher_count(SPEC.topic) < 1 for r in (first, second, other, small))
                or pub.get_subscription_count() < 2):
             assert time.monotonic() < deadline, 'ring readers and publisher never matched'
             time.sleep(0.01)
@@ -246,6 +251,14 @@ def test_nodes_reading_a_topic_alike_share_one_reader(ros_domain: int) -> None:
         assert taken_first[-1].seq == depth + 21
         for topic in second.topics.values():
             topic.destroy()
+        assert ctx.reader_count == 2  # the shallow node keeps the shared reader
+        taken_small = Capture()
+        small.activate(taken_small)
+        assert ring_depth(small_spec) < ring_depth(SPEC)
+        assert [e.seq for e in taken_small] == list(range(depth + 23 - ring_depth(small_spec),
+                                                          depth + 23))
+        for topic in small.topics.values():
+            topic.destroy()
         assert ctx.reader_count == 1
         assert len(list(ctx.node.subscriptions)) == 1
         # The reader of the other QoS kept its own history all along.
@@ -254,8 +267,9 @@ def test_nodes_reading_a_topic_alike_share_one_reader(ros_domain: int) -> None:
         assert ring_depth(other_spec) > depth + 22  # so it holds every message sent
         assert [e.seq for e in taken_other] == list(range(1, depth + 23))
     finally:
-        for topic in other.topics.values():
-            topic.destroy()
+        for ring in (first, second, small, other):
+            for topic in ring.topics.values():
+                topic.destroy()
         pub_node.destroy_node()
         pub_ctx.try_shutdown()
         ctx.shutdown()

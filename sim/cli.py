@@ -65,8 +65,11 @@ def describe(world: World, seed: int | None = None) -> dict[str, Any]:
         },
         'depth': {
             'width': DEPTH.width, 'height': DEPTH.height, 'fx': DEPTH.fx, 'fy': DEPTH.fx,
-            'cx': DEPTH.cx, 'cy': DEPTH.cy, 'range_min': DEPTH.range_min,
+            'cx': DEPTH.cx, 'cy': DEPTH.cy, 'hfov_deg': DEPTH.hfov_deg,
+            'vfov_deg': DEPTH.vfov_deg, 'range_min': DEPTH.range_min,
             'range_max': DEPTH.range_max, 'rate': DEPTH.rate,
+            # The noise's standard deviation is this times z^2 (m); DepthSpec.depth_rms.
+            'depth_rms_per_z2': float(DEPTH.depth_rms(1.0)),
         },
         'noise': asdict(world.noise),
     }

@@ -19,7 +19,9 @@ def test_list_and_info(capsys: pytest.CaptureFixture[str]) -> None:
     info = json.loads(capsys.readouterr().out)
     assert info['default_goal'] == 'behind_pillars'
     assert info['frames']['base_scan'] == [-0.064, 0.0, 0.18]
-    assert info['lidar']['beams'] == 360 and info['depth']['width'] == 80
+    assert info['lidar']['beams'] == 360 and info['depth']['width'] == 96
+    assert info['depth']['height'] == 56 and info['depth']['hfov_deg'] == 87.0
+    assert (info['depth']['range_min'], info['depth']['range_max']) == (0.2, 10.0)
 
 
 def test_unknown_world_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:

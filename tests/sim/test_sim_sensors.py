@@ -97,36 +97,102 @@ def test_real_room_lidar_drops_beams_and_the_hall_has_misses() -> None:
 
 
 def test_depth_camera_sees_a_wall_ahead_and_the_floor_below() -> None:
-    # real_room at (2.5, 3.2) facing +x... the camera (12 cm ahead, 25 cm up) looks at the
+    # real_room at (3.0, 1.0) facing +x: the camera (12 cm ahead, 25 cm up) looks at the
     # east wall's face (x = 4.95), less the corner column which is off to the left.
     pose = Pose2D(3.0, 1.0, 0.0)
     sim = Simulation(get_world('real_room'), start=pose)
     cloud = sim.camera.measure(pose.x, pose.y, pose.yaw)
     assert cloud.shape == (DEPTH.height, DEPTH.width, 3) and cloud.dtype == np.float32
     wall = 4.95 - (pose.x + ROBOT.camera.x)
-    centre = cloud[DEPTH.height // 2 - 1: DEPTH.height // 2 + 1,
-                   DEPTH.width // 2 - 1: DEPTH.width // 2 + 1]
-    assert np.allclose(centre[..., 2], wall, atol=0.02)  # z forward, depth in metres
-    assert np.allclose(centre[..., :2], 0.0, atol=0.02)
+    rows = slice(DEPTH.height // 2 - 1, DEPTH.height // 2 + 1)
+    cols = slice(DEPTH.width // 2 - 1, DEPTH.width // 2 + 1)
+    true = sim.camera.true_depth(pose.x, pose.y, pose.yaw).reshape(DEPTH.height, DEPTH.width)
+    assert np.allclose(true[rows, cols], wall, atol=1e-6)  # z forward, depth in metres
+    centre = cloud[rows, cols]
+    returned = ~np.isnan(centre[..., 2])  # real_room drops 2 % of the pixels
+    assert returned.sum() >= 3
+    # Within 4 sigma of the D435's noise at that depth (1.2 cm at 1.83 m).
+    assert np.allclose(centre[returned, 2], wall, atol=4 * float(DEPTH.depth_rms(wall)))
+    assert np.allclose(centre[returned, :2], 0.0, atol=0.02)
     # The bottom rows see the floor: y (down) equals the camera's height above it.
     bottom = cloud[-1]
     ok = ~np.isnan(bottom[:, 2])
     assert ok.any()
     assert np.allclose(bottom[ok, 1], ROBOT.camera.z, atol=0.03)
     # Right of the image is the robot's right (optical x right = -base_link y).
-    true = sim.camera.true_depth(pose.x, pose.y, pose.yaw).reshape(DEPTH.height, DEPTH.width)
     assert (true[DEPTH.height // 2] > 0).all()
+
+
+def test_depth_camera_has_the_d435_field_of_view() -> None:
+    # 87 deg across (the D435's depth stream); square pixels give about its 58 deg down.
+    assert DEPTH.hfov_deg == 87.0
+    assert DEPTH.vfov_deg == pytest.approx(58.0, abs=0.5)
+    assert 2 * math.degrees(math.atan((DEPTH.width / 2) / DEPTH.fx)) == pytest.approx(87.0)
+    # The edge pixels' rays, half a pixel inside the image's edge, agree.
+    pose = Pose2D(2.5, 2.0, 0.0)
+    sim = Simulation(get_world('real_room'), start=pose)
+    xo = sim.camera._xo.reshape(DEPTH.height, DEPTH.width)
+    yo = sim.camera._yo.reshape(DEPTH.height, DEPTH.width)
+    half_px = 0.5 / DEPTH.fx
+    assert math.degrees(2 * math.atan(xo[0, -1] + half_px)) == pytest.approx(87.0)
+    assert math.degrees(2 * math.atan(yo[-1, 0] + half_px)) == pytest.approx(DEPTH.vfov_deg)
+
+
+def test_depth_noise_is_the_d435_stereo_error() -> None:
+    # Intel's RMS(z) = z^2 * subpixel / (f_px * baseline), f_px of the 848-pixel stream.
+    assert DEPTH.native_fx == pytest.approx(447.0, abs=0.5)
+    assert float(DEPTH.depth_rms(2.0)) <= 0.02 * 2.0  # the datasheet: under 2 % at 2 m
+    assert float(DEPTH.depth_rms(2.0)) == pytest.approx(2.0**2 * 0.08 / (DEPTH.native_fx * 0.05))
+    for z in (0.5, 1.0, 3.0, 7.0):
+        assert float(DEPTH.depth_rms(2 * z)) == pytest.approx(4 * float(DEPTH.depth_rms(z)))
+    # The camera draws it: residuals over many frames, scaled by RMS(z), have unit spread.
+    pose = Pose2D(1.0, 2.0, 0.0)
+    sim = Simulation(get_world('real_room'), seed=3, start=pose)
+    true = sim.camera.true_depth(pose.x, pose.y, pose.yaw)
+    scaled = []
+    for _ in range(20):
+        z = sim.camera.measure(pose.x, pose.y, pose.yaw)[..., 2].reshape(-1).astype(np.float64)
+        ok = ~np.isnan(z)
+        scaled.append((z[ok] - true[ok]) / DEPTH.depth_rms(true[ok]))
+    r = np.concatenate(scaled)
+    assert r.size > 10 * DEPTH.width * DEPTH.height
+    assert abs(r.mean()) < 0.02
+    # float32 rounding of a near point is ~1e-7 m, far below its RMS: the spread is the noise.
+    assert r.std() == pytest.approx(1.0, abs=0.03)
+
+
+def test_depth_outside_0_2_to_10_m_is_nan() -> None:
+    sim = Simulation(get_world('office_small'), seed=4)
+    camera = sim.camera
+    # True depths from none (-1) to 14 m: what the camera reports lies in its range.
+    true = np.concatenate([[-1.0, 0.05, 0.1, 0.19], np.linspace(0.0, 14.0, 20000)])
+    for _ in range(5):
+        z = camera.measured_depth(true)
+        finite = ~np.isnan(z)
+        assert (z[finite] >= DEPTH.range_min).all() and (z[finite] <= DEPTH.range_max).all()
+        # Nearer than 0.2 m (the noise there is under a millimetre) or far beyond 10 m
+        # (12 m is 4.6 sigma out): nothing.
+        assert np.isnan(z[(true < 0.199) | (true > 12.0)]).all()
+        # Well inside the range (no dropouts in office_small): every pixel returns.
+        assert finite[(true > 0.21) & (true < 8.5)].all()
+    # A wall 15 cm ahead of the camera fills the image: every pixel too near, all NaN.
+    pose = Pose2D(4.95 - 0.15 - ROBOT.camera.x, 1.0, 0.0)
+    near = Simulation(get_world('real_room'), start=pose)
+    assert np.allclose(near.camera.true_depth(pose.x, pose.y, pose.yaw), 0.15, atol=1e-6)
+    assert np.isnan(near.camera.measure(pose.x, pose.y, pose.yaw)).all()
 
 
 def test_camera_points_beyond_range_are_nan() -> None:
     hall = get_world('workshop')
     pose = Pose2D(2.0, 7.0, 0.0)  # looking down the hall: the far wall is 18 m away
     sim = Simulation(hall, start=pose)
+    true = sim.camera.true_depth(pose.x, pose.y, pose.yaw).reshape(DEPTH.height, DEPTH.width)
     cloud = sim.camera.measure(pose.x, pose.y, pose.yaw)
     z = cloud[..., 2]
     assert np.isnan(z).any()
-    assert np.nanmax(z) <= DEPTH.range_max + 0.05
-    assert np.nanmin(z) >= DEPTH.range_min - 0.05
+    assert np.isnan(z[true > 12.0]).all() and (true > 12.0).any()
+    assert np.nanmax(z) <= DEPTH.range_max
+    assert np.nanmin(z) >= DEPTH.range_min
 
 
 def test_odometry_tracks_a_short_drive_and_drifts_over_the_route() -> None:

@@ -427,12 +427,17 @@ def test_frames_wait_for_their_odometry_and_go_on_without_any() -> None:
     assert len(mapper.pending) == 1
     out = feed(mapper, [m for m in odoms if m[1] == clouds[0][1]])
     assert [r.stamp_ns for r in out] == [clouds[0][1]] and not mapper.pending
-    # No odometry at all: frames are still tracked, from the model alone.
+    # No odometry at all: frames are still tracked, from the model alone. Nothing but the
+    # depth holds the pose then, and the D435's depth noise grows with z^2 (sim/README.md):
+    # 0.18 m at worst over these 3 s (0.03-0.04 m with the earlier camera's noise), where a
+    # pose left where it started ends as far off as the robot travelled (0.73 m).
     blind = new_mapper('real_room')
     results = feed(blind, clouds)
     assert len(results) == len(clouds) - 1  # the newest waits, in case odometry comes
     position, _ = pose_errors(results, run.truth)
-    assert position.max() < 0.05
+    start, end = run.truth[results[0].stamp_ns], run.truth[results[-1].stamp_ns]
+    travel = math.hypot(end[0] - start[0], end[1] - start[1])
+    assert position.max() < 0.25 and position.max() < travel / 3
 
 
 def test_keyframes_hold_their_clouds_and_link_into_the_graph(real_room_run: RouteRun) -> None:

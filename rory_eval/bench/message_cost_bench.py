@@ -56,7 +56,7 @@ _TICK = float(os.sysconf('SC_CLK_TCK'))
 
 PUBLISHER = r'''
 import signal, sys, time, array, rclpy
-signal.signal(signal.SIGINT, signal.SIG_DFL)  # stopped when done: no traceback in the bench's output
+signal.signal(signal.SIGINT, signal.SIG_DFL)  # stopped when done: no traceback in the output
 from rclpy.qos import QoSProfile
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import LaserScan

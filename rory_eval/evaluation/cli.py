@@ -2,7 +2,7 @@
 
     python -m rory_eval.evaluation [--quick] [--targets T ...] [--worlds W ...]
         [--methods M ...] [--repetitions 5] [--crash-at 9 | --random-crash]
-        [--replay fast|paced] [--jobs 1] [--out eval-out] [--fresh]
+        [--replay fast|paced] [--other-pace [METHOD ...]] [--jobs 1] [--out eval-out] [--fresh]
 
 Each run is its own process (:mod:`.runner`) in its own ROS domain; its record is kept in
 ``OUT/runs/NAME/``, so an interrupted evaluation goes on where it stopped (``--fresh`` starts
@@ -31,10 +31,13 @@ from rory_eval.evaluation import judge as judge_module
 from rory_eval.evaluation.plan import (
     CRASH_AT,
     METHODS,
+    PACED_METHODS,
+    PACES,
     WORLDS,
     Plan,
     RunSpec,
     build_plan,
+    opposite_pace,
 )
 from rory_eval.evaluation.runner import RECORD, RunRecord, instrument
 from rory_eval.targets import TARGETS
@@ -61,8 +64,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                        help='a uniformly random crash time per repetition (seeded)')
     parser.add_argument('--duration', type=float, default=None,
                         help='sim seconds per run (default: per target kind, see plan.py)')
-    parser.add_argument('--replay', choices=('fast', 'paced'), default='fast',
+    parser.add_argument('--replay', choices=PACES, default='fast',
                         help="replay pace of rory and replay (paced: the paper's)")
+    parser.add_argument('--other-pace', nargs='*', choices=PACED_METHODS, default=None,
+                        metavar='METHOD',
+                        help='methods that also crash once per cell with the other replay pace '
+                             '(paced when --replay is fast), a column beside their own in '
+                             'Tables III and IV (default: rory; none with --quick)')
     parser.add_argument('--overhead-worlds', nargs='*', choices=WORLDS, default=['real_room'],
                         help='worlds where a no-crash run under RORY measures the overhead '
                              '(paper: real_room)')
@@ -75,6 +83,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument('--out', type=Path, default=Path('eval-out'))
     parser.add_argument('--fresh', action='store_true', help='redo runs already recorded')
     args = parser.parse_args(argv)
+    if args.other_pace is None:
+        args.other_pace = [] if args.quick else ['rory']
     if args.quick:
         args.targets, args.worlds, args.repetitions = [QUICK_TARGET], [QUICK_WORLD], 1
         args.overhead_worlds = [QUICK_WORLD]
@@ -175,7 +185,7 @@ def execute_plan(plan: Plan, out: Path, *, jobs: int, domain: int, fresh: bool,
 
 def _one_line(record: RunRecord) -> str:
     s = record.spec
-    what = f'{s.target} {s.world} {s.method}' + (
+    what = f'{s.target} {s.world} {s.column}' + (
         '' if s.crash_at is None else f' crash {s.crash_at:g} s')
     if record.error:
         return f'{what}: FAILED ({record.error[:80]})'
@@ -219,8 +229,9 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
         f'- command: `{shlex.join(["rory", "eval", *argv])}`',
         f'- targets: {", ".join(args.targets)}; worlds: {", ".join(args.worlds)}; methods: '
         f'{", ".join(args.methods)}; repetitions: {args.repetitions}; seeds from {args.seed}',
-        f'- crash: SIGKILL at {crash}; checkpoint every 2 s; replay {args.replay}; run length: '
-        f'{length}',
+        f'- crash: SIGKILL at {crash}; checkpoint every 2 s; replay {args.replay}'
+        + (f' ({", ".join(args.other_pace)} also {opposite_pace(args.replay)}, beside)'
+           if args.other_pace else '') + f'; run length: {length}',
         '',
         'Correctness (✓ every run correct, ✗ none, ? some; k/n = correct/judged), judged against '
         'the same target\'s run without a crash:',
@@ -233,7 +244,8 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
         '',
         '## Table III: checkpoint alone, replay alone and RORY',
         '',
-        report.correctness_table(judged, ('checkpoint', 'replay', 'rory')),
+        report.correctness_table(judged, report.columns(judged, ('checkpoint', 'replay',
+                                                                  'rory'))),
         '',
         '## Table IV: recovery time, crash detected -> released (median ms)',
         '',
@@ -280,7 +292,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                           repetitions=args.repetitions, crash_at=args.crash_at,
                           random_crash=args.random_crash, duration=args.duration,
                           seed=args.seed, replay=args.replay,
-                          overhead_worlds=args.overhead_worlds)
+                          overhead_worlds=args.overhead_worlds, other_pace=args.other_pace)
     except ValueError as exc:
         print(f'rory eval: {exc}', file=sys.stderr)
         return 2

@@ -35,7 +35,7 @@ def cell_figure(target: str, world: str, reference: tuple[RunRecord, Path],
     w = get_world(world)
     panels: list[tuple[str, RunRecord, Path, Verdict | None]] = [
         ('no crash', reference[0], reference[1], None)]
-    panels += [(f'{j.record.spec.method}, crash at {j.record.spec.crash_at:g} s', j.record,
+    panels += [(f'{j.record.spec.column}, crash at {j.record.spec.crash_at:g} s', j.record,
                 j.folder, j.verdict) for j in crashes]
     xmin, ymin, xmax, ymax = w.bounds
     aspect = (ymax - ymin) / (xmax - xmin)
@@ -94,8 +94,8 @@ def all_figures(runs: Sequence[tuple[RunRecord, Path]], judged: Sequence[Judged]
         crashes = sorted((j for j in judged
                           if (j.record.spec.target, j.record.spec.world,
                               j.record.spec.repetition) == (target, world, rep)
-                          and j.record.spec.method in methods),
-                         key=lambda j: methods.index(j.record.spec.method))
+                          and j.record.spec.column in methods),
+                         key=lambda j: methods.index(j.record.spec.column))
         if not crashes:
             continue
         done.add((target, world))

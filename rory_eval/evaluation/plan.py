@@ -5,7 +5,9 @@ The targets themselves (folder, command line, topics, kind) are rory_eval/target
 A *cell* is one target in one world. For each cell and repetition the evaluation makes a
 ``bare`` run (the original node, no RORY: the no-crash reference and Table II's baseline) and one
 crash run per method. In the ``overhead_worlds`` it also makes a ``rory`` run without a crash, the
-same workload under RORY, for Table II.
+same workload under RORY, for Table II. The methods named in ``other_pace`` also crash once with
+the other replay pace (paced when the evaluation's is fast), beside the evaluation's own: a
+column of their own in Tables III and IV (:attr:`RunSpec.column`).
 
 How each kind of target runs, as in the paper's section IV-B:
 
@@ -28,6 +30,8 @@ from typing import Any
 from rory_eval.targets import NAVIGATION_SECONDS, TARGETS, Kind, Target
 
 METHODS = ('restart', 'checkpoint', 'replay', 'rory')
+PACES = ('fast', 'paced')
+PACED_METHODS = ('replay', 'rory')  # the methods that replay, so have a pace
 WORLDS = ('office_small', 'workshop', 'real_room')
 BARE = 'bare'  # the reference: the original node, no supervisor
 CRASH_AT = 9.0  # sim s, the paper's crash time
@@ -52,12 +56,19 @@ class RunSpec:
     seed: int = 0
     replay: str = 'fast'
     interval: float = CHECKPOINT_INTERVAL
+    beside: bool = False  # a run of the other replay pace, beside the evaluation's own
 
     @property
     def name(self) -> str:
         """A folder name, unique in one evaluation."""
         crash = 'nocrash' if self.crash_at is None else f'crash{self.crash_at:.1f}'
-        return f'{self.target}-{self.world}-{self.method}-{crash}-r{self.repetition}'
+        column = self.column.replace(' ', '-')
+        return f'{self.target}-{self.world}-{column}-{crash}-r{self.repetition}'
+
+    @property
+    def column(self) -> str:
+        """Its column in the tables: the method, with the pace when it runs beside."""
+        return f'{self.method} {self.replay}' if self.beside else self.method
 
     @property
     def spec(self) -> Target:
@@ -72,6 +83,11 @@ class RunSpec:
     def from_json(cls, data: dict[str, Any]) -> RunSpec:
         """Back from :meth:`to_json`."""
         return cls(**data)
+
+
+def opposite_pace(pace: str) -> str:
+    """The replay pace that is not ``pace``."""
+    return PACES[1 - PACES.index(pace)]
 
 
 def duration_for(target: str, world: str, override: float | None = None) -> float:
@@ -98,7 +114,8 @@ class Plan:
 def build_plan(targets: Sequence[str], worlds: Sequence[str], methods: Sequence[str], *,
                repetitions: int, crash_at: float = CRASH_AT, random_crash: bool = False,
                duration: float | None = None, seed: int = 0, replay: str = 'fast',
-               overhead_worlds: Sequence[str] = ('real_room',)) -> Plan:
+               overhead_worlds: Sequence[str] = ('real_room',),
+               other_pace: Sequence[str] = ()) -> Plan:
     """Every run, repetition by repetition (a partial evaluation still covers every cell).
 
     With ``random_crash`` each repetition of a cell draws its crash time uniformly from
@@ -113,6 +130,15 @@ def build_plan(targets: Sequence[str], worlds: Sequence[str], methods: Sequence[
     if bad:
         msg = f'unknown method(s) {", ".join(bad)}; known: {", ".join(METHODS)}'
         raise ValueError(msg)
+    if replay not in PACES:
+        msg = f'unknown replay pace {replay!r}; known: {", ".join(PACES)}'
+        raise ValueError(msg)
+    unpaced = [m for m in other_pace if m not in PACED_METHODS]
+    if unpaced:
+        msg = (f'{", ".join(unpaced)} cannot run at another pace: only '
+               f'{" and ".join(PACED_METHODS)} replay')
+        raise ValueError(msg)
+    other = opposite_pace(replay)
     draw = random.Random(seed)
     plan = Plan()
     for rep in range(repetitions):
@@ -132,4 +158,6 @@ def build_plan(targets: Sequence[str], worlds: Sequence[str], methods: Sequence[
                 if world in overhead_worlds:
                     plan.runs.append(RunSpec(method='rory', crash_at=None, **common))
                 plan.runs.extend(RunSpec(method=m, crash_at=at, **common) for m in methods)
+                plan.runs.extend(RunSpec(method=m, crash_at=at, beside=True,
+                                         **{**common, 'replay': other}) for m in other_pace)
     return plan

@@ -6,6 +6,9 @@
 * Table IV - recovery time (crash detected -> released), median per target, world and method,
   and its breakdown into the steps S1-S4 (S3 split into restart, restore and replay).
 
+Runs of a method at the other replay pace (``RunSpec.beside``) have their own column beside
+the method's, e.g. ``rory paced`` next to ``rory``.
+
 ✓: every judged run correct; ✗: none; ?: some. A cell also shows ``k/n`` (correct of judged)
 when not every repetition was judged (a run or its reference failed).
 """
@@ -85,7 +88,7 @@ def _cell_table(judged: Sequence[Judged], methods: Sequence[str], first: str, al
     """Targets down, world x method across, as the paper lays out its tables."""
     targets = _present((j.record.spec.target for j in judged), list(TARGETS))
     worlds = _present((j.record.spec.world for j in judged), WORLDS)
-    methods = _present((j.record.spec.method for j in judged), methods)
+    methods = _present((j.record.spec.column for j in judged), methods)
     if not methods:
         return ''
     head = f'| {first} | ' + ' | '.join(f'{w} {m}' for w in worlds for m in methods) + ' |'
@@ -101,7 +104,7 @@ def correctness_table(judged: Sequence[Judged], methods: Sequence[str]) -> str:
     by_cell: dict[tuple[str, str, str], list[Verdict]] = defaultdict(list)
     for j in judged:
         s = j.record.spec
-        by_cell[(s.target, s.world, s.method)].append(j.verdict)
+        by_cell[(s.target, s.world, s.column)].append(j.verdict)
     return _cell_table(judged, methods, 'program (paper)', '---',
                        lambda t, w, m: symbol(by_cell.get((t, w, m), [])),
                        lambda t: f'{t} ({TARGETS[t].paper})')
@@ -115,14 +118,21 @@ def _total(recovery: dict[str, Any]) -> float:
     return float(recovery.get('total_ms', math.nan))
 
 
+def columns(judged: Sequence[Judged], methods: Sequence[str] = METHODS) -> list[str]:
+    """``methods``, each followed by its runs at the other replay pace when there are any."""
+    beside = {j.record.spec.column for j in judged if j.record.spec.beside}
+    return [c for m in methods for c in (m, *sorted(b for b in beside
+                                                    if b.split(' ')[0] == m))]
+
+
 def recovery_table(judged: Sequence[Judged]) -> str:
     """Median recovery time (ms) per target x (world x method), like the paper's Table IV."""
     times: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     for j in judged:
         s = j.record.spec
         if j.record.recoveries:
-            times[(s.target, s.world, s.method)].append(_total(j.record.recoveries[0]))
-    return _cell_table(judged, METHODS, 'program', '---:',
+            times[(s.target, s.world, s.column)].append(_total(j.record.recoveries[0]))
+    return _cell_table(judged, columns(judged), 'program', '---:',
                        lambda t, w, m: _median(times.get((t, w, m), [])), lambda t: t)
 
 
@@ -132,12 +142,12 @@ def steps_table(judged: Sequence[Judged]) -> str:
     for j in judged:
         s = j.record.spec
         if j.record.recoveries:
-            rows[(s.target, s.method)].append(j.record.recoveries[0])
+            rows[(s.target, s.column)].append(j.record.recoveries[0])
     lines = ['| program | method | runs | total | ' + ' | '.join(n for n, _ in STEPS) + ' |',
              '|---|---|---:|---:|' + '---:|' * len(STEPS)]
     targets = _present((t for t, _ in rows), list(TARGETS))
     for t in targets:
-        for m in METHODS:
+        for m in columns(judged):
             recs = rows.get((t, m))
             if not recs:
                 continue
@@ -249,7 +259,7 @@ def failures(judged: Sequence[Judged]) -> str:
     for j in judged:
         if j.verdict.correct is not True:
             s = j.record.spec
-            lines.append(f'- {s.target} {s.world} {s.method} r{s.repetition} '
+            lines.append(f'- {s.target} {s.world} {s.column} r{s.repetition} '
                          f'(crash at {s.crash_at:g} s): {j.verdict.reason}')
     return '\n'.join(lines)
 

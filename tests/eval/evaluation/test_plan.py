@@ -68,6 +68,8 @@ def test_run_lengths_follow_the_target_kind() -> None:
     ({'targets': ['slam9000']}, 'unknown target(s) slam9000'),
     ({'methods': ['reboot']}, 'unknown method(s) reboot'),
     ({'crash_at': 28.0}, 'leaves no time to recover'),
+    ({'other_pace': ['restart']}, 'restart cannot run at another pace'),
+    ({'replay': 'slow'}, "unknown replay pace 'slow'"),
 ])
 def test_bad_plans_are_refused_with_the_reason(kwargs: dict[str, object],
                                                message: str) -> None:
@@ -83,3 +85,33 @@ def test_a_spec_goes_through_json_and_names_its_folder() -> None:
     assert RunSpec.from_json(spec.to_json()) == spec
     assert spec.name == 'amcl-real_room-checkpoint-crash9.0-r3'
     assert RunSpec('amcl', 'real_room', BARE, 0, None, 30.0).name.endswith('-nocrash-r0')
+
+
+def test_a_method_at_the_other_pace_crashes_beside_its_own() -> None:
+    # Table IV with the evaluation's pace and the other one beside it: one more crash run per
+    # cell and repetition, the same crash, its own folder and column.
+    plan = build_plan(['grid_slam'], ['office_small'], list(METHODS), repetitions=2,
+                      overhead_worlds=(), other_pace=['rory'])
+    assert len(plan.runs) == 2 * (1 + len(METHODS) + 1)
+    beside = [r for r in plan.runs if r.beside]
+    assert [(r.method, r.replay, r.column, r.repetition) for r in beside] == [
+        ('rory', 'paced', 'rory paced', 0), ('rory', 'paced', 'rory paced', 1)]
+    own = [r for r in plan.runs if r.method == 'rory' and not r.beside]
+    assert [r.replay for r in own] == ['fast', 'fast'] and [r.column for r in own] == ['rory'] * 2
+    assert [r.crash_at for r in beside] == [r.crash_at for r in own]
+    assert len({r.name for r in plan.runs}) == len(plan.runs)
+    assert beside[0].name == 'grid_slam-office_small-rory-paced-crash9.0-r0'
+    assert RunSpec.from_json(beside[0].to_json()) == beside[0]
+    # The other way round: a paced evaluation has fast runs beside.
+    paced = build_plan(['grid_slam'], ['office_small'], ['rory'], repetitions=1,
+                       overhead_worlds=(), replay='paced', other_pace=['rory', 'replay'])
+    assert [(r.column, r.replay) for r in paced.runs if r.crash_at is not None] == [
+        ('rory', 'paced'), ('rory fast', 'fast'), ('replay fast', 'fast')]
+
+
+def test_a_record_from_before_the_other_pace_loads_as_its_own_pace() -> None:
+    old = RunSpec('amcl', 'real_room', 'rory', 0, 9.0, 30.0).to_json()
+    del old['beside']
+    spec = RunSpec.from_json(old)
+    assert not spec.beside and spec.column == 'rory'
+    assert spec.name == 'amcl-real_room-rory-crash9.0-r0'

@@ -11,6 +11,7 @@ import numpy as np
 from rory_eval.evaluation.judge import Verdict
 from rory_eval.evaluation.plan import BARE, RunSpec
 from rory_eval.evaluation.report import (
+    columns,
     correctness_table,
     judge_all,
     overhead_by_process,
@@ -76,6 +77,29 @@ def test_tables_from_records(tmp_path: Path) -> None:
     overhead = overhead_table(runs)
     assert '| grid_slam | office_small | 1 | 10.0% | 80 MB | 11.0% (1.10x) |' in overhead
     assert '120 MB (1.50x, +40 MB)' in overhead
+
+
+def test_a_method_at_the_other_pace_has_its_own_column_beside_it(tmp_path: Path) -> None:
+    runs = _runs(tmp_path)
+    rory_fast = runs[3][0]
+    paced = RunSpec('grid_slam', 'office_small', 'rory', 0, 9.0, 30.0, replay='paced',
+                    beside=True)
+    folder = tmp_path / paced.name
+    folder.mkdir()
+    (folder / 'final_map.npz').write_bytes((runs[3][1] / 'final_map.npz').read_bytes())
+    events = [dict(rory_fast.events[0], total_ms=900.0)]
+    runs.append((RunRecord(run=paced.to_json(), events=events), folder))
+    judged = judge_all(runs)
+    assert [(j.record.spec.column, j.verdict.correct) for j in judged] == [
+        ('restart', False), ('rory', True), ('rory paced', True)]
+    recovery = recovery_table(judged)
+    assert 'office_small rory | office_small rory paced |' in recovery
+    assert '| grid_slam | 1500 | 300 | 900 |' in recovery
+    table_three = correctness_table(judged, columns(judged, ('checkpoint', 'replay', 'rory')))
+    assert '| grid_slam (hector_mapping) | ✓ | ✓ |' in table_three
+    assert '| grid_slam | rory paced | 1 | 900 |' in steps_table(judged)
+    # Table I keeps to the evaluation's own pace.
+    assert 'paced' not in correctness_table(judged, ('restart', 'rory'))
 
 
 def test_the_csv_has_a_row_per_run_with_its_verdict(tmp_path: Path) -> None:

@@ -70,7 +70,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         metavar='METHOD',
                         help='methods that also crash once per cell with the other replay pace '
                              '(paced when --replay is fast), a column beside their own in '
-                             'Tables III and IV (default: rory; none with --quick)')
+                             'Tables III and IV (default: rory when it is among --methods; '
+                             'none with --quick)')
     parser.add_argument('--overhead-worlds', nargs='*', choices=WORLDS, default=['real_room'],
                         help='worlds where a no-crash run under RORY measures the overhead '
                              '(paper: real_room)')
@@ -84,7 +85,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument('--fresh', action='store_true', help='redo runs already recorded')
     args = parser.parse_args(argv)
     if args.other_pace is None:
-        args.other_pace = [] if args.quick else ['rory']
+        args.other_pace = [] if args.quick or 'rory' not in args.methods else ['rory']
     if args.quick:
         args.targets, args.worlds, args.repetitions = [QUICK_TARGET], [QUICK_WORLD], 1
         args.overhead_worlds = [QUICK_WORLD]

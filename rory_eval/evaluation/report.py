@@ -120,9 +120,9 @@ def _total(recovery: dict[str, Any]) -> float:
 
 def columns(judged: Sequence[Judged], methods: Sequence[str] = METHODS) -> list[str]:
     """``methods``, each followed by its runs at the other replay pace when there are any."""
-    beside = {j.record.spec.column for j in judged if j.record.spec.beside}
-    return [c for m in methods for c in (m, *sorted(b for b in beside
-                                                    if b.split(' ')[0] == m))]
+    beside = {(j.record.spec.method, j.record.spec.column) for j in judged
+              if j.record.spec.beside}
+    return [c for m in methods for c in (m, *sorted(c for b, c in beside if b == m))]
 
 
 def recovery_table(judged: Sequence[Judged]) -> str:
@@ -146,8 +146,9 @@ def steps_table(judged: Sequence[Judged]) -> str:
     lines = ['| program | method | runs | total | ' + ' | '.join(n for n, _ in STEPS) + ' |',
              '|---|---|---:|---:|' + '---:|' * len(STEPS)]
     targets = _present((t for t, _ in rows), list(TARGETS))
+    order = columns(judged)
     for t in targets:
-        for m in columns(judged):
+        for m in order:
             recs = rows.get((t, m))
             if not recs:
                 continue

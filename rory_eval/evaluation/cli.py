@@ -3,12 +3,18 @@
     python -m rory_eval.evaluation [--quick] [--targets T ...] [--worlds W ...]
         [--methods M ...] [--repetitions 5] [--crash-at 9 | --random-crash]
         [--replay fast|paced] [--other-pace [METHOD ...]] [--jobs 1] [--out eval-out] [--fresh]
+        [--report-only] [--table-ii DIR ...]
 
 Each run is its own process (:mod:`.runner`) in its own ROS domain; its record is kept in
 ``OUT/runs/NAME/``, so an interrupted evaluation goes on where it stopped (``--fresh`` starts
-over). At the end it judges every crash run against its reference (:mod:`.judge`) and writes
-``OUT/results.md`` (the tables, the failures, the settings, the machine, the command and how
-long it took), ``OUT/runs.csv`` (one row per run) and ``OUT/figures/*.png``.
+over; ``--report-only`` runs nothing and reports what is recorded). At the end it judges every
+crash run against its reference (:mod:`.judge`) and writes ``OUT/results.md`` (the tables, the
+failures, the settings, the machine, the command and how long it took), ``OUT/runs.csv`` (one
+row per run) and ``OUT/figures/*.png``.
+
+The evaluation's own overhead runs share the machine with its other runs. The paper's Table II
+is measured on a quiet machine by :mod:`rory_eval.bench.table_ii`; ``--table-ii`` puts the
+folders of its sittings into results.md as Table II.
 """
 
 from __future__ import annotations
@@ -83,7 +89,15 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         '<= 101: higher ids have ports in the ephemeral range)')
     parser.add_argument('--out', type=Path, default=Path('eval-out'))
     parser.add_argument('--fresh', action='store_true', help='redo runs already recorded')
+    parser.add_argument('--report-only', action='store_true',
+                        help='run nothing: the tables from the runs recorded in --out (one not '
+                             'recorded is reported as failed to run)')
+    parser.add_argument('--table-ii', type=Path, nargs='+', default=[], metavar='DIR',
+                        help='Table II from these folders of python -m rory_eval.bench.table_ii '
+                             '(a quiet machine), instead of this evaluation\'s overhead runs')
     args = parser.parse_args(argv)
+    if args.report_only and args.fresh:
+        parser.error('--report-only and --fresh: one runs nothing, the other everything again')
     if args.other_pace is None:
         args.other_pace = [] if args.quick or 'rory' not in args.methods else ['rory']
     if args.quick:
@@ -132,9 +146,25 @@ def _load_if_done(spec: RunSpec, folder: Path) -> RunRecord | None:
     return record if record.run == spec.to_json() and not record.error else None
 
 
+def _recorded(spec: RunSpec, folder: Path) -> RunRecord:
+    """The record made for exactly this spec, failed or not; else one saying it is missing."""
+    try:
+        record = RunRecord.load(folder)
+    except (OSError, ValueError, TypeError, KeyError):
+        return RunRecord(run=spec.to_json(), error=f'not recorded in {folder}')
+    if record.run != spec.to_json():
+        return RunRecord(run=spec.to_json(), error=f'{folder} holds another run\'s record')
+    return record
+
+
 def execute_plan(plan: Plan, out: Path, *, jobs: int, domain: int, fresh: bool,
-                 progress: Progress | None = None) -> list[tuple[RunRecord, Path]]:
-    """Run every spec (``jobs`` at a time, each in its own domain); the records in plan order."""
+                 progress: Progress | None = None,
+                 report_only: bool = False) -> list[tuple[RunRecord, Path]]:
+    """Run every spec (``jobs`` at a time, each in its own domain); the records in plan order.
+    With ``report_only``, nothing runs: the records as they are."""
+    if report_only:
+        return [(_recorded(spec, out.resolve() / 'runs' / spec.name),
+                 out.resolve() / 'runs' / spec.name) for spec in plan.runs]
     # Absolute: the supervisor respawns the node from its own working directory.
     out = out.resolve()
     inst = out / 'instrumented'
@@ -215,6 +245,8 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
 
     judged = report.judge_all(runs)
     busy, sittings = report.running_time(runs)
+    # When the runs began, not this call: a report made again later keeps the evaluation's date.
+    began = report.first_start(runs) or started
     report.write_csv(args.out / 'runs.csv', runs, judged)
     pngs = figures.all_figures(runs, judged, args.out / 'figures')
     crash = 'uniformly random per repetition' if args.random_crash else f'{args.crash_at:g} s'
@@ -224,7 +256,7 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
     text = [
         '# RORY evaluation: the paper\'s tables from real runs',
         '',
-        f'- date: {started:%Y-%m-%d %H:%M} UTC; {len(runs)} runs took {busy / 60:.1f} min in '
+        f'- date: {began:%Y-%m-%d %H:%M} UTC; {len(runs)} runs took {busy / 60:.1f} min in '
         f'{sittings} sitting{"s" if sittings != 1 else ""} (this call: {seconds / 60:.1f} min)',
         f'- machine: {_machine()}',
         f'- command: `{shlex.join(["rory", "eval", *argv])}`',
@@ -256,10 +288,14 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
         '',
         report.steps_table(judged),
         '',
-        '## Table II: overhead, the bare node against node + RORY (no crash, same workload)',
+        *_table_ii(args.table_ii),
+        ('## Table II: overhead, the bare node against node + RORY (no crash, same workload)'
+         if not args.table_ii else
+         '## Overhead under the evaluation\'s load (no crash, same workload)'),
         '',
         'CPU in % of one core over the simulated run; RSS the peak of every process of the '
-        'target (supervisor and node under RORY), summed.',
+        'target (supervisor and node under RORY), summed. These runs share the machine with '
+        'the evaluation\'s others.',
         '',
         report.overhead_table(runs) or '(no overhead runs)',
         '',
@@ -284,6 +320,23 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
     return path
 
 
+def _table_ii(folders: Sequence[Path]) -> list[str]:
+    """results.md's Table II from the quiet sittings of rory_eval.bench.table_ii, if given."""
+    if not folders:
+        return []
+    from rory_eval.bench import table_ii
+
+    sittings = [table_ii.load(folder) for folder in folders]
+    return ['## Table II: overhead, the bare node against node + RORY (no crash, same workload)',
+            '',
+            'Measured on a quiet machine by `python -m rory_eval.bench.table_ii`: steady CPU (the '
+            'second half of the run, every process up) in % of one core, PSS at the end, the '
+            'simulator left out; ratio and PSS added are medians of the pairs (each RORY run '
+            'against the bare run beside it).',
+            '',
+            table_ii.report(sittings)]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Plan, run, report. Exit 0 when every run ran (whatever the verdicts), 1 otherwise."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -297,14 +350,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f'rory eval: {exc}', file=sys.stderr)
         return 2
+    from rory_eval.bench.table_ii import TableIIError
+
+    try:
+        _table_ii(args.table_ii)  # read before the runs: a wrong folder fails now, not after
+    except TableIIError as exc:
+        print(f'rory eval: --table-ii: {exc}', file=sys.stderr)
+        return 2
+    if args.report_only and not (args.out / 'runs').is_dir():
+        print(f'rory eval: --report-only: {args.out / "runs"} does not exist (no runs recorded '
+              'there)', file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     started = datetime.now(UTC)
     t0 = time.monotonic()
-    print(f'rory eval: {len(plan.runs)} runs ({len(plan.crash_runs())} with a crash) into '
-          f'{args.out}/', file=sys.stderr)
+    print(f'rory eval: {len(plan.runs)} runs ({len(plan.crash_runs())} with a crash) '
+          f'{"recorded in" if args.report_only else "into"} {args.out}/', file=sys.stderr)
     progress = Progress(len(plan.runs))
     runs = execute_plan(plan, args.out, jobs=args.jobs, domain=args.domain, fresh=args.fresh,
-                        progress=progress)
+                        progress=None if args.report_only else progress,
+                        report_only=args.report_only)
     progress.close()
     path = write_results(args, argv, runs, started, time.monotonic() - t0)
     print(path.read_text().split('## Runs not correct')[0])

@@ -21,6 +21,7 @@ import statistics
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -252,6 +253,14 @@ def running_time(runs: Sequence[tuple[RunRecord, Path]], *, gap: float = 600.0
         else:
             sittings.append([begin, finish])
     return sum(b - a for a, b in sittings), len(sittings)
+
+
+def first_start(runs: Sequence[tuple[RunRecord, Path]]) -> datetime | None:
+    """When the earliest run began (as :func:`running_time` spans them), or None if no run ran."""
+    spans = [(folder / RECORD).stat().st_mtime - record.wall_seconds
+             for record, folder in runs
+             if record.wall_seconds > 0 and (folder / RECORD).exists()]
+    return datetime.fromtimestamp(min(spans), UTC) if spans else None
 
 
 def failures(judged: Sequence[Judged]) -> str:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import os
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from rory_eval.evaluation.plan import BARE, RunSpec
 from rory_eval.evaluation.report import (
     columns,
     correctness_table,
+    first_start,
     judge_all,
     overhead_by_process,
     overhead_table,
@@ -128,6 +130,9 @@ def test_running_time_sums_sittings_not_the_gaps_between_them(tmp_path: Path) ->
     busy, sittings = running_time(runs)
     assert sittings == 2
     assert busy == 75.0 + 60.0  # t0..t0+75, then the 60 s run
+    # The evaluation's date is its first run's start, whenever the report is made.
+    assert first_start(runs) == datetime.fromtimestamp(t0, UTC)
+    assert first_start([(RunRecord(run=runs[0][0].run), tmp_path / 'none')]) is None
 
 
 def test_overhead_by_process_shows_each_role_and_the_steady_half() -> None:

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from rory_eval.bench import table_ii
+from rory_eval.bench import stack_bench, table_ii
 from rory_eval.bench.table_ii import STACK, Pair, Row, TableIIError, merge, row, table
 from rory_eval.evaluation import runner
 from rory_eval.evaluation.plan import RunSpec
@@ -124,3 +124,24 @@ def test_rows_survive_the_json_they_are_written_to(tmp_path: Path) -> None:
     loaded = table_ii.load(data)
     assert loaded['rows'] == [row('navigator', [Pair(10.0, 60.0, 12.0, 110.0, 1.5)])]
     assert isinstance(loaded['rows'][0], Row)
+
+
+def test_the_stack_pairs_the_six_bare_with_the_six_under_one_supervisor(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    runs: list[tuple[str, Path]] = []
+
+    def fake_run_once(config: str, world: str, out: Path, domain: int) -> dict[str, Any]:
+        runs.append((config, out))
+        if config == 'rory' and len(runs) == 3:
+            raise RuntimeError('the clock never started')
+        cpu = 60.0 if config == 'bare' else 63.0
+        return {'config': config, 'cpu_percent': cpu, 'pss_mb': 400.0 if config == 'bare'
+                else 450.0, 'goal_reached': True,
+                'roles': {'node': {'cpu_percent': 60.5 if config == 'rory' else cpu}}}
+
+    monkeypatch.setattr(stack_bench, 'run_once', fake_run_once)
+    pairs, failed = table_ii.stack_pairs('real_room', 2, tmp_path, 88, progress=lambda _: None)
+    assert [c for c, _ in runs] == ['bare', 'rory', 'rory', 'bare']
+    assert runs[0][1] == tmp_path / 'stack' / 'bare-0'
+    assert failed == 1
+    assert pairs == [Pair(60.0, 400.0, 63.0, 450.0, 2.5)]

@@ -31,7 +31,7 @@ test: lint
 	$(PY) -m pytest -n 2 --dist loadgroup --durations=15
 
 # The paper's Tables I-IV and figures: 6 targets x 3 worlds x 4 methods x 5 runs (hours;
-# interrupted, it goes on where it stopped), then Table II alone on the machine (~40 min: each
+# interrupted, it goes on where it stopped), then Table II alone on the machine (~26 min: each
 # target and the six-target stack, bare against RORY) and the report with it. Results in
 # eval-out/results.md.
 eval: $(STAMP)

@@ -239,8 +239,9 @@ def _machine() -> str:
 
 def write_results(args: argparse.Namespace, argv: Sequence[str],
                   runs: Sequence[tuple[RunRecord, Path]], started: datetime,
-                  seconds: float) -> Path:
-    """results.md, runs.csv and the figures, in args.out."""
+                  seconds: float, table_ii: Sequence[str] = ()) -> Path:
+    """results.md, runs.csv and the figures, in args.out; ``table_ii`` is the quiet Table II's
+    section (:func:`_table_ii`), if any."""
     from rory_eval.evaluation import figures, report
 
     judged = report.judge_all(runs)
@@ -288,7 +289,7 @@ def write_results(args: argparse.Namespace, argv: Sequence[str],
         '',
         report.steps_table(judged),
         '',
-        *_table_ii(args.table_ii),
+        *table_ii,
         ('## Table II: overhead, the bare node against node + RORY (no crash, same workload)'
          if not args.table_ii else
          '## Overhead under the evaluation\'s load (no crash, same workload)'),
@@ -353,7 +354,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rory_eval.bench.table_ii import TableIIError
 
     try:
-        _table_ii(args.table_ii)  # read before the runs: a wrong folder fails now, not after
+        # Read before the runs: a wrong folder fails now, not after hours of them.
+        table_ii = _table_ii(args.table_ii)
     except TableIIError as exc:
         print(f'rory eval: --table-ii: {exc}', file=sys.stderr)
         return 2
@@ -371,7 +373,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         progress=None if args.report_only else progress,
                         report_only=args.report_only)
     progress.close()
-    path = write_results(args, argv, runs, started, time.monotonic() - t0)
+    path = write_results(args, argv, runs, started, time.monotonic() - t0, table_ii)
     print(path.read_text().split('## Runs not correct')[0])
     print(f'rory eval: results in {path}, {args.out / "runs.csv"}, {args.out / "figures"}/')
     return 1 if any(r.error for r, _ in runs) else 0

@@ -24,9 +24,13 @@ from rory_eval.harness.scenario import Kill, ScenarioResult
 pytestmark = pytest.mark.ros
 
 BY_NAME = {node.name: node for node in NODES}
-# The operators act at numbers 20-30, before the node's first checkpoint (2 s after its
-# release, 1-1.7 s into the numbers), and again 5-15 numbers after it (corpus/operator.py reads
-# /rory/events); the node is killed 1 s after that checkpoint, 1 s before its second.
+# The operators take their steps in order (corpus/operator.py): the first at numbers 20-30,
+# usually before the node's first checkpoint (2 s after its release, 1-1.7 s into the numbers,
+# but later in the numbers when they start late on a busy machine), the others 5-15 numbers
+# after that checkpoint; the node is killed 1 s after it, 1 s before its second. Which changes
+# come back from the checkpoint and which from the log depends on where the checkpoint fell:
+# every change comes back once, in order, either way (every placement is forced in
+# tests/runtime/test_input_order.py).
 KILL = Kill(after_checkpoint=1, delay=1.0)
 
 
@@ -62,12 +66,14 @@ def test_a_node_working_in_a_timer_recovers_every_tick(
 def test_a_node_tuned_at_run_time_keeps_its_parameters_through_a_crash(
     tmp_path: Path, ros_domain: int
 ) -> None:
-    # The gain set to 2 comes back from the checkpoint, the change to 3 from the log.
+    # The gain set to 2 comes back from the checkpoint if it was set before it, else from the
+    # log; the change to 3 always from the log.
     result = _crashed('gain_controller', tmp_path, ros_domain)
     assert isinstance(result.state, dict)
     assert [gain for gain, _ in result.state['gains']] == [1.0, 2.0, 3.0]
-    assert _restored(result)['parameters'] == ['gain']
-    assert result.recoveries[0]['parameter_changes_replayed'] == 1
+    from_checkpoint = _restored(result)['parameters']
+    assert from_checkpoint in ([], ['gain'])
+    assert result.recoveries[0]['parameter_changes_replayed'] == 2 - len(from_checkpoint)
 
 
 def test_a_node_commanded_by_a_service_keeps_its_commands_through_a_crash(
@@ -77,16 +83,20 @@ def test_a_node_commanded_by_a_service_keeps_its_commands_through_a_crash(
     assert isinstance(result.state, dict)
     assert [factor for factor, _ in result.state['runs']] == [1, 2, 1]
     assert result.state['requests'] == 2
-    assert result.recoveries[0]['requests_replayed'] == 1
+    # The second request always from the log; the first from the checkpoint or the log.
+    assert result.recoveries[0]['requests_replayed'] in (1, 2)
 
 
-def test_a_lifecycle_node_comes_back_active_through_its_callbacks(
+def test_a_lifecycle_node_comes_back_through_its_callbacks(
     tmp_path: Path, ros_domain: int
 ) -> None:
-    # Active at the checkpoint: back through on_configure (which subscribes) and on_activate;
-    # the deactivation and activation after it are replayed from the log.
+    # Back to the checkpoint's state through on_configure (which subscribes) and, if it was
+    # active then, on_activate; the transitions after it are replayed from the log.
     result = _crashed('lifecycle_counter', tmp_path, ros_domain)
     assert isinstance(result.state, dict)
     assert [counted for counted, _ in result.state['runs']] == [0, 1, 0, 1]
-    assert _restored(result)['lifecycle'] == 'active'
-    assert result.recoveries[0]['requests_replayed'] == 2
+    at_checkpoint = _restored(result)['lifecycle']
+    # configure at the start, so before the checkpoint; activate at 30, before it or not.
+    assert at_checkpoint in ('active', 'inactive')
+    replayed = {'active': 2, 'inactive': 3}[str(at_checkpoint)]
+    assert result.recoveries[0]['requests_replayed'] == replayed

@@ -1,11 +1,15 @@
-"""Not a node under test: the operator, acting when it sees numbers go by (at the first number
-it sees from N on; it may join after the first went by; N=0: as soon as the service is there).
-``cK`` instead of N: at the K-th number after the node's first checkpoint (read on
-/rory/events), so that an action lands after that checkpoint whenever it is taken.
+"""Not a node under test: the operator, taking the steps it is given one after another, each
+only once the one before it was taken (so the node is asked in the order given, however late
+the first checkpoint falls among the numbers):
 
-    operator.py gain N=GAIN ...        set /gain_controller's `gain` (its ~/set_parameters)
-    operator.py fast N=0|1 ...         call /mode_switch/fast_mode (std_srvs/SetBool)
-    operator.py lifecycle N=LABEL ...  ask /lifecycle_counter/change_state for a transition
+    N=VALUE    at the first number it sees from N on (it may join after the first went by;
+               N=0: as soon as the service is there, before any number)
+    cK=VALUE   at the K-th number seen after both the node's first checkpoint (read on
+               /rory/events) and the step before, so that it lands after that checkpoint
+
+    operator.py gain STEP ...        set /gain_controller's `gain` (its ~/set_parameters)
+    operator.py fast STEP ...        call /mode_switch/fast_mode (std_srvs/SetBool), VALUE 0|1
+    operator.py lifecycle STEP ...   ask /lifecycle_counter/change_state for a transition
 """
 
 import json
@@ -24,10 +28,9 @@ from std_srvs.srv import SetBool
 
 def main():
     what = sys.argv[1]
-    pairs = [arg.split('=') for arg in sys.argv[2:]]
-    plan = {int(n): v for n, v in pairs if not n.startswith('c')}
-    after_checkpoint = {int(n[1:]): v for n, v in pairs if n.startswith('c')}
-    seen_after = []  # numbers seen since the first checkpoint
+    # [(after the first checkpoint?, N or K, value), ...] in the order given
+    steps = [(n.startswith('c'), int(n.removeprefix('c')), v)
+             for n, v in (arg.split('=') for arg in sys.argv[2:])]
     rclpy.init()
     node = Node('operator')
     if what == 'gain':
@@ -47,31 +50,39 @@ def main():
         def request(value):
             return ChangeState.Request(transition=Transition(label=value))
 
-    def on_number(msg):
-        if seen_after:
-            seen_after.append(msg.data)
-            value = after_checkpoint.pop(len(seen_after) - 1, None)
-            if value is not None:
-                client.call_async(request(value))
-                print(f'at {msg.data} ({len(seen_after) - 1} after the first checkpoint): '
-                      f'{what} {value}', flush=True)
-        due = [n for n in plan if n <= msg.data]
-        if due:
-            value = plan.pop(max(due))
-            for n in due:
-                plan.pop(n, None)
-            client.call_async(request(value))
-            print(f'at {msg.data}: {what} {value}', flush=True)
+    checkpointed = []  # [True] once the node's first checkpoint was seen
+    counted = [0]  # numbers seen since the last step was taken and the first checkpoint
 
-    now = plan.pop(0, None)
-    if now is not None:
+    def on_number(msg):
+        if not steps:
+            return
+        after_checkpoint, n, value = steps[0]
+        if after_checkpoint:
+            if not checkpointed:
+                return
+            counted[0] += 1
+            if counted[0] < n:
+                return
+            where = f'{n} after the first checkpoint and the step before'
+        elif msg.data >= n:
+            where = f'{n} or later'
+        else:
+            return
+        steps.pop(0)
+        counted[0] = 0
+        client.call_async(request(value))
+        print(f'at {msg.data} ({where}): {what} {value}', flush=True)
+
+    while steps and steps[0][:2] == (False, 0):
+        _, _, value = steps.pop(0)
         client.wait_for_service()
-        future = client.call_async(request(now))
+        future = client.call_async(request(value))
         rclpy.spin_until_future_complete(node, future)
-        print(f'at start: {what} {now}: {future.result()}', flush=True)
+        print(f'at start: {what} {value}: {future.result()}', flush=True)
+
     def on_event(msg):
-        if not seen_after and json.loads(msg.data).get('kind') == 'checkpoint':
-            seen_after.append(None)  # counting from the next number
+        if not checkpointed and json.loads(msg.data).get('kind') == 'checkpoint':
+            checkpointed.append(True)  # counting from the next number
 
     latched = QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     node.create_subscription(String, '/rory/events', on_event, latched)

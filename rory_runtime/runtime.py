@@ -821,9 +821,11 @@ class NodeRuntime:
         if message in self.reported_errors:
             return
         self.reported_errors.add(message)
-        if self.node is not None:
+        if self.node is not None and self.node.context.ok():
             self.node.get_logger().error(f'[rory] {message}')
         else:
+            # With its context shut down (rclpy's SIGINT handler does it before the exit-time
+            # checkpoint), the node's logger adds a failure to publish on /rosout.
             _logger.error('[rory] %s', message)
         self._status(ErrorStatus(message=message))
 

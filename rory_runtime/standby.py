@@ -25,16 +25,21 @@ supervisor dropped it) ends the standby.
 from __future__ import annotations
 
 import ast
+import builtins
 import contextlib
 import importlib
+import importlib.machinery
 import importlib.metadata
 import importlib.util
+import io
 import json
 import logging
 import os
+import pkgutil
 import runpy
 import shutil
 import sys
+import types
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -384,20 +389,60 @@ def drop_placeholder_after_first_node(node_class: Any, placeholder: Any) -> None
     node_class.__init__ = __init__
 
 
+# What the interpreter itself calls for ``python -m`` and a folder or zip file: it runs the
+# code in the ``__main__`` of sys.modules and, unlike run_module, leaves it there.
+_run_module_as_main: Callable[..., object] = runpy._run_module_as_main  # type: ignore[attr-defined]
+
+
 def run_program(program: Program) -> None:
-    """Run it as ``python`` (or its console script) would have."""
+    """Run it as ``python`` (or its console script) would have.
+
+    A script or ``-m`` module runs in a new ``__main__`` module that stays in ``sys.modules``
+    after it returns or raises, as in an interpreter (``runpy.run_path`` and ``run_module``
+    put the zygote's back): the atexit hooks that run after it, among them the runtime's last
+    checkpoint, which names an Enum or dataclass class by its module, must find the
+    program's classes there.
+    """
+    sys.argv = program.argv
     if program.entry is not None:
-        sys.argv = program.argv
         sys.path[0] = str(Path(str(program.argv0)).parent)  # a script's folder comes first
         target: Any = importlib.import_module(str(program.module))
         for part in program.entry.split('.'):
             target = getattr(target, part)
         sys.exit(target())  # as the console script's wrapper does
-    elif program.script is not None:
-        sys.argv = program.argv
-        sys.path[0] = str(program.home())
-        runpy.run_path(str(program.script), run_name='__main__')
-    else:
-        sys.argv = program.argv
+    main = types.ModuleType('__main__')
+    main.__builtins__ = builtins  # type: ignore[attr-defined]
+    sys.modules['__main__'] = main
+    if program.script is None:
         sys.path[0] = str(program.home())  # python -m puts the working directory first
-        runpy.run_module(str(program.module), run_name='__main__', alter_sys=True)
+        _run_module_as_main(str(program.module), alter_argv=True)
+    elif pkgutil.get_importer(str(program.script)) is not None:
+        # A folder or zip file: its __main__.py, found first on sys.path, as python runs it.
+        sys.path[0] = str(program.script)
+        _run_module_as_main('__main__', alter_argv=False)
+    else:
+        sys.path[0] = str(program.home())
+        _run_file(program.script, main)
+
+
+def _run_file(script: Path, main: types.ModuleType) -> None:
+    """``python FILE``: its source, or the code of a compiled file, run in ``main``."""
+    path = os.path.abspath(script)
+    with io.open_code(path) as file:
+        code = pkgutil.read_code(file)
+    if code is None:
+        with io.open_code(path) as file:
+            # dont_inherit: this module's ``from __future__`` imports are not the program's.
+            code = compile(file.read(), path, 'exec', dont_inherit=True)
+        loader: Any = importlib.machinery.SourceFileLoader('__main__', path)
+    else:
+        loader = importlib.machinery.SourcelessFileLoader('__main__', path)
+    main.__file__ = path
+    main.__cached__ = None  # type: ignore[attr-defined]
+    main.__loader__ = loader
+    try:
+        exec(code, vars(main))
+    finally:  # as the interpreter does once a file has run
+        vars(main).pop('__file__', None)
+        vars(main).pop('__cached__', None)
+

@@ -402,6 +402,10 @@ class _Recorder:
     def close(self) -> None:
         self.context.try_shutdown()
         self._thread.join(timeout=2.0)
+        # The participant ends with the context's last node, not with its shutdown
+        # (tests/sim/conftest.py, Probe.close).
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
 
 
 def _spawn(argv: list[str], env: dict[str, str], cwd: Path, log: Path) -> subprocess.Popen[bytes]:

@@ -75,6 +75,10 @@ class _Listener:
     def close(self) -> None:
         self.context.try_shutdown()
         self.thread.join(timeout=2.0)
+        # The participant ends with the context's last node, not with its shutdown
+        # (tests/sim/conftest.py, Probe.close).
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
 
 
 

@@ -25,8 +25,8 @@ def _get_parameters(domain: int, service: str, names: list[str]) -> list[object]
     """What `ros2 param get` would print, through the node's own parameter service."""
     context = Context()
     rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    node = Node('param_reader', context=context)
     try:
-        node = Node('param_reader', context=context)
         client = node.create_client(GetParameters, service)
         assert client.wait_for_service(timeout_sec=20), f'{service} never appeared'
         future = client.call_async(GetParameters.Request(names=names))
@@ -37,6 +37,7 @@ def _get_parameters(domain: int, service: str, names: list[str]) -> list[object]
         assert response is not None, f'{service} did not answer'
         return [parameter_value_to_python(v) for v in response.values]
     finally:
+        node.destroy_node()  # its participant outlives a shut-down context otherwise
         context.try_shutdown()
 
 

@@ -178,9 +178,18 @@ class Probe:
             time.sleep(0.05)
 
     def close(self) -> None:
-        """Shut the context down and join the spinner."""
+        """Shut the context down, join the spinner, and destroy the node.
+
+        Shutting a context down does not end its DDS participant: that goes with the last
+        node of the context. A probe left undestroyed kept its latched /e_stop (True, after
+        the e-stop test) alive in this pytest worker, and a later test given the same domain
+        (each worker cycles through its span of ids) heard a safe state no run of its own had
+        engaged (issue 35).
+        """
         self.context.try_shutdown()
         self._thread.join(timeout=2.0)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
 
 
 @pytest.fixture

@@ -145,6 +145,10 @@ class Feeder:
     def close(self) -> None:
         self.context.try_shutdown()
         self._thread.join(timeout=2.0)
+        # The participant ends with the context's last node, not with its shutdown
+        # (tests/sim/conftest.py, Probe.close).
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
 
 
 def _stamp(msg: Any, stamp_s: float) -> None:

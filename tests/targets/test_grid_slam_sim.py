@@ -122,6 +122,10 @@ class ScanFeeder:
     def close(self) -> None:
         self.context.try_shutdown()
         self._thread.join(timeout=2.0)
+        # The participant ends with the context's last node, not with its shutdown
+        # (tests/sim/conftest.py, Probe.close).
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
 
 
 def scan_msg(ranges: Any, stamp_s: float, angle_min: float = LIDAR.angle_min,

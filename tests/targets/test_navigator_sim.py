@@ -63,8 +63,8 @@ def test_malformed_messages_are_warned_about_and_survived(tmp_path: Path,
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain,
                signal_handler_options=SignalHandlerOptions.NO)
+    node = Node('bad_input', context=context)
     try:
-        node = Node('bad_input', context=context)
         grid = OccupancyGrid()
         grid.info.width, grid.info.height, grid.info.resolution = 10, 10, 0.05
         grid.data = [0] * 7  # not 10 x 10
@@ -92,6 +92,7 @@ def test_malformed_messages_are_warned_about_and_survived(tmp_path: Path,
         for topic in ('/map', '/goal_pose', '/scan', '/odom'):
             assert f'{topic}: ignored' in text, text
     finally:
+        node.destroy_node()  # its participant outlives a shut-down context otherwise
         context.try_shutdown()
         proc.terminate()
         proc.wait(timeout=10)

@@ -423,6 +423,27 @@ def test_a_late_heartbeat_keeps_the_inputs_and_a_hang_hands_them_to_r(tmp_path: 
     assert rlog.entries == [taken] and h.sup.safety.log == HELD
 
 
+def test_a_starved_node_beating_late_is_never_taken_for_crashed(tmp_path: Path) -> None:
+    # CPU starvation: for a minute, every beat comes just inside the hang timeout. Each time
+    # the ring keeps the inputs from 0.6 s on and drops them when the beat comes: the node
+    # applies only what its own reader gives it. No signal, no safe state, no recovery.
+    h = _logging(tmp_path, hang_timeout=5.0)
+    (ring,) = h.sup.rings
+    for _ in range(12):
+        h.tick(STALL_SUSPECT)
+        assert h.node.early_capture is not None
+        h.tick(5.0 - STALL_SUSPECT - 0.01)  # 4.99 s without a beat
+        h.beat()
+        h.tick(0.0)
+        assert h.node.early_capture is None and ring.active_topics == set()
+    assert h.child.signals == [] and h.sup.safety.log == []
+    assert h.node.sm.state == S.RUNNING and h.node.recovery is None
+    assert not any(h.sup.events_log.of(kind) for kind in ('hang', 'exit', 'recovered'))
+    # The hang timeout itself passing is a hang: stacks dumped, then killed, then recovered.
+    h.tick(5.01)
+    assert h.child.signals == [signal.SIGUSR1]
+
+
 def test_a_clean_exit_during_a_recovery_releases_the_safe_state_once(tmp_path: Path) -> None:
     h = _started(tmp_path)
     h.exit(-signal.SIGKILL)

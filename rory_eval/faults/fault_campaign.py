@@ -109,11 +109,17 @@ def judge(case: Case, result: ScenarioResult) -> Outcome:
                    strikes=len(result.kills), covered=covered)
 
 
+def scenario(kills: tuple[Kill, ...], workdir: Path, domain_id: int) -> ScenarioResult:
+    """The campaign's run with these strikes (none: a run without a fault, as the load
+    campaign makes); raises RuntimeError when the harness fails."""
+    return run('rory', kills, workdir, domain_id=domain_id, count=COUNT, rate=RATE,
+               interval=1.0, pace='fast', program=FLAKY, timeout=90.0)
+
+
 def run_case(case: Case, workdir: Path, domain_id: int) -> Outcome:
     """One run, in its own folder and ROS domain; a harness failure is an outcome too."""
     try:
-        result = run('rory', case.kills(), workdir, domain_id=domain_id, count=COUNT, rate=RATE,
-                     interval=1.0, pace='fast', program=FLAKY, timeout=90.0)
+        result = scenario(case.kills(), workdir, domain_id)
     except RuntimeError as err:
         return Outcome(case, False, COUNT, 0, True, 0, str(err).splitlines()[0])
     return judge(case, result)

@@ -194,14 +194,20 @@ def judge(schedule: Schedule, result: ScenarioResult) -> Outcome:
     )
 
 
+def scenario(schedule: Schedule, workdir: Path, domain_id: int,
+             timeout: float = 150.0) -> ScenarioResult:
+    """The run of ``schedule`` (no strikes: a run without a fault, as the load campaign
+    makes); raises RuntimeError when the harness fails."""
+    return run('rory', schedule.kills(), workdir, domain_id=domain_id, count=schedule.count,
+               rate=RATE, interval=schedule.interval, pace=schedule.pace, program=FLAKY,
+               warm_standby=schedule.warm, timeout=timeout)
+
+
 def run_schedule(schedule: Schedule, workdir: Path, domain_id: int,
                  timeout: float = 150.0) -> Outcome:
     """One run in its own folder and ROS domain; a harness failure is an outcome too."""
     try:
-        result = run('rory', schedule.kills(), workdir, domain_id=domain_id,
-                     count=schedule.count, rate=RATE, interval=schedule.interval,
-                     pace=schedule.pace, program=FLAKY, warm_standby=schedule.warm,
-                     timeout=timeout)
+        result = scenario(schedule, workdir, domain_id, timeout)
     except RuntimeError as err:
         return Outcome(schedule, False, schedule.count, lost=schedule.count,
                        error=str(err).splitlines()[0])

@@ -10,4 +10,6 @@ Each is a command, ``python -m rory_eval.faults.<name>``; docs/faults.md holds t
 * :mod:`.storm_campaign` - part three: crash storms on the integrator, strikes in a row.
 * :mod:`.corpus_campaign` - part four: every node of the corpus with fast replay, SIGKILLed at
   random times, against its no-crash run.
+* :mod:`.load_campaign` - parts one to four, fewer runs, with busy processes on every core
+  beside them, and runs without a fault that must show no kill and no safe state.
 """

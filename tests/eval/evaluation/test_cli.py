@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -36,11 +38,36 @@ def test_a_method_without_a_pace_is_refused_in_one_line(capsys: pytest.CaptureFi
 
 def test_report_only_runs_nothing_and_says_what_is_not_recorded(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    def no_process(*args: object, **kwargs: object) -> None:
-        raise AssertionError('--report-only started a process')
+    """--report-only starts no run and instruments nothing; it reports what is not recorded.
 
-    monkeypatch.setattr(subprocess, 'run', no_process)
-    monkeypatch.setattr(cli, 'instrument', no_process)
+    Issue 35: this failed with "--report-only started a process" when run beside other tests
+    on a fresh machine. The process was not a run: it was matplotlib's ``fc-list``. The report
+    imports matplotlib.pyplot for its figures, and a first import that finds no readable font
+    cache (~/.cache/matplotlib/fontlist-v*.json) builds one by running ``fc-list`` through
+    subprocess.check_output, which calls subprocess.run - and the test had replaced
+    subprocess.run for the whole process. Alone, it passed where an earlier import had left the
+    cache; in a parallel run it failed when no other test had written the cache yet (or one was
+    writing it: matplotlib truncates the file before writing, and the reader takes no lock).
+    With the cache directory empty it failed every time. Now only a process started by the
+    evaluation's own code counts (the first caller outside the subprocess module is in
+    rory_eval), and no run's folder nor the instrumented copies may appear.
+    """
+    real_run = subprocess.run
+
+    def no_run(*args: Any, **kwargs: Any) -> Any:
+        frame = sys._getframe(1)
+        while frame.f_back is not None and frame.f_globals.get('__name__') == 'subprocess':
+            frame = frame.f_back  # check_output, call: the caller is whoever called those
+        caller = frame.f_globals.get('__name__', '')
+        if caller.split('.')[0] == 'rory_eval':
+            raise AssertionError(f'--report-only started a process from {caller}: {args}')
+        return real_run(*args, **kwargs)  # a library's own helper process (matplotlib's fc-list)
+
+    def no_instrumenting(*args: object, **kwargs: object) -> None:
+        raise AssertionError('--report-only instrumented a target')
+
+    monkeypatch.setattr(subprocess, 'run', no_run)
+    monkeypatch.setattr(cli, 'instrument', no_instrumenting)
     out = tmp_path / 'eval-out'
     (out / 'runs').mkdir(parents=True)
     argv = ['--targets', 'grid_slam', '--worlds', 'office_small', '--methods', 'restart',
@@ -58,6 +85,8 @@ def test_report_only_runs_nothing_and_says_what_is_not_recorded(
     assert f'- {failed.name}: the clock never started' in text
     for spec in plan_runs[1:]:
         assert f'- {spec.name}: not recorded in {out / "runs" / spec.name}' in text
+    assert [p.name for p in (out / 'runs').iterdir()] == [failed.name]
+    assert not (out / 'instrumented').exists()
 
 
 def test_report_only_without_recorded_runs_is_refused_in_one_line(

@@ -25,9 +25,13 @@ Envelope layout (little endian), inside the ``data`` field of the UInt8MultiArra
     MSG      flags u8 | recv_ns i64 | source_ns i64 | seq u32 | topic_len u16 | topic | cdr
     RELEASE  next_segment u64 | delivered u64
     OPEN     (no body)                      the release gate opened: unmute the outputs
+    ALIVE    (no body)                      the relay is alive with nothing to relay
 
 A MSG with ``FLAG_RELAY`` was recorded after RELEASE: the node logs it when it applies it,
-because it is not in any sealed log segment.
+because it is not in any sealed log segment. After RELEASE the relay sends an ALIVE whenever
+it has sent nothing for :data:`RELAY_KEEPALIVE_S`, so that a node can tell a relay with
+nothing to relay (its ring received nothing, e.g. during a link outage) from a supervisor that
+died (``routing.RELAY_SILENCE_NS``).
 """
 
 from __future__ import annotations
@@ -595,10 +599,15 @@ class SwitchedStatus:
     # Publication sequence numbers of the messages left out: they reached only the live
     # reader, after the relay had delivered later ones of the same publisher.
     passed_by_relay: tuple[int, ...]
+    # Publication sequence numbers of the messages applied from the live reader that the relay
+    # never delivered, in their publisher's order before a relayed one (``Router._live_only``):
+    # the supervisor's ring never got them, and its input gap leaves them out.
+    live_only: tuple[int, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         """The fields as they travel."""
-        return {'topic': self.topic, 'passed_by_relay': list(self.passed_by_relay)}
+        return {'topic': self.topic, 'passed_by_relay': list(self.passed_by_relay),
+                'live_only': list(self.live_only)}
 
     @classmethod
     def from_fields(cls, fields: _Fields) -> SwitchedStatus:
@@ -607,7 +616,8 @@ class SwitchedStatus:
         Raises:
             ProtocolError: A field missing or of the wrong type.
         """
-        return cls(topic=fields.text('topic'), passed_by_relay=fields.integers('passed_by_relay'))
+        return cls(topic=fields.text('topic'), passed_by_relay=fields.integers('passed_by_relay'),
+                   live_only=fields.integers('live_only'))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -743,6 +753,11 @@ _RELEASE = struct.Struct('<QQ')
 
 FLAG_RELAY: Final = 0x01
 
+RELAY_KEEPALIVE_S: Final = 0.5
+"""After RELEASE, the relay sends an ALIVE envelope when it has sent nothing for this long.
+A quarter of the node's ``routing.RELAY_SILENCE_NS`` (2 s): three may be lost or late before
+the node takes the relay for dead."""
+
 
 class EnvelopeKind(enum.IntEnum):
     """Kinds of envelope on a shadow topic."""
@@ -751,6 +766,7 @@ class EnvelopeKind(enum.IntEnum):
     MSG = 2
     RELEASE = 3
     OPEN = 4
+    ALIVE = 5
 
 
 @dataclass(frozen=True, slots=True)
@@ -795,7 +811,14 @@ class Open:
     incarnation: int
 
 
-Envelope = Sync | Msg | Release | Open
+@dataclass(frozen=True, slots=True)
+class Alive:
+    """The relay is alive and has nothing to relay (sent after RELEASE, when idle)."""
+
+    incarnation: int
+
+
+Envelope = Sync | Msg | Release | Open | Alive
 
 
 def _wrap(payload: bytes) -> bytes:
@@ -834,6 +857,11 @@ def pack_release(incarnation: int, next_segment: int, delivered: int) -> bytes:
 def pack_open(incarnation: int) -> bytes:
     """Serialized UInt8MultiArray carrying an OPEN."""
     return _wrap(_HEAD.pack(_MAGIC, _VERSION, EnvelopeKind.OPEN, incarnation))
+
+
+def pack_alive(incarnation: int) -> bytes:
+    """Serialized UInt8MultiArray carrying an ALIVE."""
+    return _wrap(_HEAD.pack(_MAGIC, _VERSION, EnvelopeKind.ALIVE, incarnation))
 
 
 def sign(raw: bytes, key: bytes) -> bytes:
@@ -914,6 +942,8 @@ def unpack(raw: bytes, key: bytes | None = None) -> Envelope:
             return Release(incarnation, next_segment, delivered)
         if kind == EnvelopeKind.OPEN:
             return Open(incarnation)
+        if kind == EnvelopeKind.ALIVE:
+            return Alive(incarnation)
     except (struct.error, UnicodeDecodeError) as err:
         raise ProtocolError(f'malformed envelope of kind {kind}: {err}') from None
     raise ProtocolError(f'unknown envelope kind {kind}')

@@ -41,9 +41,23 @@ SWITCH_CONFIRMATIONS = 3
 """Relayed messages that must also arrive live before a topic switches to its live reader."""
 
 RELAY_SILENCE_NS = 2_000_000_000
-"""A live message that waited this long for the relay means the relay is gone (its supervisor
-died): the topic switches to its live reader rather than stall. The window still rules out
-duplicates; only a publisher matched late could lose a message, which is logged."""
+"""Nothing from the relay for this long, neither a relayed message of any topic nor an ALIVE
+(sent every ``protocol.RELAY_KEEPALIVE_S`` while it has nothing to relay), means the relay is
+gone: its supervisor died. A topic whose live messages wait then switches to its live reader
+rather than stall. The window still rules out duplicates; only a publisher matched late could
+lose a message, which is logged."""
+
+RELAY_WAIT_NS = 10_000_000_000
+"""A topic whose live messages have waited this long while the relay is alive but relays
+nothing of that topic switches to its live reader, with an error that says so.
+
+After a link outage longer than the DDS lease the publisher matches the node's reader and the
+supervisor's ring again each on its own schedule; while the ring is not matched yet the relay
+has nothing of the topic to send, and waiting for it is what lets the node apply in order what
+the ring brings and the supervisor report what reached neither reader. Two readers of one host
+are found again within about one announcement period of each other (1 s in RORY's profile, 3 s
+in Fast DDS's default): 10 s is several of either, and it bounds how long the node's view of
+the topic stays behind when the ring is not matched again at all."""
 
 
 class TopicPhase(enum.StrEnum):
@@ -113,6 +127,11 @@ class Window:
     def snapshot(self) -> list[tuple[int, int]]:
         return list(self._order)
 
+    @property
+    def newest(self) -> MessageId | None:
+        """The identity applied last (None: none yet)."""
+        return self._order[-1] if self._order else None
+
 
 @dataclass
 class Input:
@@ -135,7 +154,8 @@ class _HandoverEvidence:
 
     live_seen: set[MessageId] = field(default_factory=set)
     relayed: deque[MessageId] = field(default_factory=lambda: deque(maxlen=64))
-    last_relay_ns: int = 0
+    # When the first live message arrived since the topic's last relayed one (0: none since).
+    waiting_ns: int = 0
 
 
 class Apply(Protocol):
@@ -176,6 +196,7 @@ class Router:
             readings it took live.
         error: Reports an error (the runtime's ERROR status).
         status: Sends a status to the supervisor (SWITCHED).
+        clock: Wall-clock nanoseconds, for the relay's silence (tests give their own).
     """
 
     def __init__(
@@ -183,6 +204,7 @@ class Router:
         lock: threading.RLock, windows: dict[str, Window], stats: dict[str, int], apply: Apply,
         replay_event: Callable[[protocol.Msg, list[Reading]], None],
         error: Callable[[str], None], status: Callable[[Status], None],
+        clock: Callable[[], int] = time.time_ns,
     ) -> None:
         self._recovering = recovering
         self._quarantined = quarantined
@@ -201,9 +223,17 @@ class Router:
         # set, dropped at the switch, is what keeps them from being applied twice.
         self.shadow_seen: dict[str, set[MessageId]] = {}
         self.handover: dict[str, _HandoverEvidence] = {}
+        # Per topic in HANDOVER: live messages applied before a relayed one because the relay
+        # will never deliver them (:meth:`_apply_live_only`), and how far its scan of
+        # pending_live has come (what lies before is settled).
+        self.live_only: dict[str, set[MessageId]] = {}
+        self._scanned: dict[str, int] = {}
         # Shadow messages of topics the node has no subscription to yet.
         self.orphans: dict[str, list[protocol.Msg]] = {}
+        self.clock = clock
         self.released_ns = 0
+        # When the relay was last heard: a relayed message of any topic, or an ALIVE.
+        self.relay_heard_ns = 0
         # The readings the next replayed event took when it ran live (the streamer sends an
         # event's clock records just before the event).
         self._readings: list[Reading] = []
@@ -295,9 +325,10 @@ class Router:
         if inp.phase not in _FROM_SHADOW:
             return  # already switched to its live reader, which carries this message too
         relayed = bool(msg.flags & FLAG_RELAY)
+        self.shadow_seen.setdefault(msg.topic, set()).add(msg.ident)
         if relayed:
             self._note_relayed(msg.topic, msg.ident)
-        self.shadow_seen.setdefault(msg.topic, set()).add(msg.ident)
+            self._apply_live_only(inp, msg.ident)
         if self._is_quarantined(msg.topic, msg.ident):
             pass
         elif msg.ident in self.windows[msg.topic]:
@@ -316,6 +347,10 @@ class Router:
         if relayed:
             self._maybe_switch(msg.topic)
 
+    def relay_alive(self) -> None:
+        """An ALIVE came on the shadow topic: the relay is there, with nothing to relay."""
+        self.relay_heard_ns = self.clock()
+
     # -- live messages ------------------------------------------------------------------------
 
     def on_live(self, inp: Input, raw: bytes, info: dict[str, Any]) -> None:
@@ -326,14 +361,13 @@ class Router:
             pending = self.pending_live[inp.topic]
             pending.append((ident, raw, info))
             if inp.phase is _HANDOVER:
-                self.handover.setdefault(inp.topic, _HandoverEvidence()).live_seen.add(ident)
+                state = self.handover.setdefault(inp.topic, _HandoverEvidence())
+                state.live_seen.add(ident)
+                if not state.waiting_ns:
+                    state.waiting_ns = self.clock()
                 self._maybe_switch(inp.topic)
-                state = self.handover.get(inp.topic)
-                last_relay = state.last_relay_ns if state is not None else 0
-                silent = time.time_ns() - max(self.released_ns, last_relay)
-                if inp.phase is _HANDOVER and silent > RELAY_SILENCE_NS:
-                    self._error(f'no relay for {inp.topic}; switching it to live unconfirmed')
-                    self.switch(inp.topic)
+                if inp.phase is _HANDOVER:
+                    self._switch_unconfirmed_if_stalled(inp.topic, state.waiting_ns)
             return
         if ident in self.windows[inp.topic]:
             # e.g. a transient-local publisher re-sending what the checkpoint already holds
@@ -345,10 +379,45 @@ class Router:
 
     # -- release and handover (S4) ------------------------------------------------------------
 
+    def _switch_unconfirmed_if_stalled(self, topic: str, waiting_ns: int) -> None:
+        """Switch a topic in HANDOVER to its live reader without confirmation when the relay
+        is gone (:data:`RELAY_SILENCE_NS`), or alive but relaying nothing of the topic while
+        its live messages wait (:data:`RELAY_WAIT_NS`); with an error that says which."""
+        now = self.clock()
+        silent = now - max(self.released_ns, self.relay_heard_ns)
+        if silent > RELAY_SILENCE_NS:
+            why = (f'nothing from the supervisor\'s relay for {silent / 1e9:.1f} s, neither a '
+                   'message nor an ALIVE: it is taken for gone')
+        elif now - waiting_ns > RELAY_WAIT_NS:
+            why = (f'the relay is alive but relayed nothing of it while its live messages '
+                   f'waited {(now - waiting_ns) / 1e9:.1f} s (RORY\'s recorder not matched '
+                   'with its publisher again?)')
+        else:
+            return
+        self._error(f'no relay for {topic}; switching it to live unconfirmed: {why}'
+                    f'{self._missed_before_live(topic)}')
+        self.switch(topic)
+
+    def _missed_before_live(self, topic: str) -> str:
+        """What the node can tell it missed, switching ``topic`` unconfirmed: with one
+        publisher, the sequence numbers between the last message applied and the first live
+        one waiting that nobody applied (as words for the error; empty when none)."""
+        newest = self.windows[topic].newest
+        if newest is None or self.inputs[topic].sub.get_publisher_count() != 1:
+            return ''
+        settled = self.shadow_seen.get(topic, set()) | self.live_only.get(topic, set())
+        first = next((ident for ident, _, _ in self.pending_live[topic]
+                      if ident not in settled and ident[1] > newest[1]), None)
+        if first is None or first[1] <= newest[1] + 1:
+            return ''
+        low, high = newest[1] + 1, first[1] - 1
+        seqs = str(low) if low == high else f'{low}-{high}'
+        return f'; publication seq {seqs} never reached this node'
+
     def release(self) -> None:
         """S4 for the inputs: topics on the shadow topic go to HANDOVER, the others LIVE, and
         what their live readers hold is applied, in receive order (under the runtime's lock)."""
-        self.released_ns = time.time_ns()
+        self.released_ns = self.clock()
         for inp in self.inputs.values():
             if inp.phase is TopicPhase.BUFFERED:
                 inp.phase = transition(inp.topic, inp.phase, TopicPhase.LIVE)
@@ -365,7 +434,7 @@ class Router:
             (info['received_timestamp'], self.inputs[topic], ident, raw, info)
             for topic in topics
             for ident, raw, info in self.pending_live[topic]
-            if ident not in passed[topic]
+            if ident not in passed[topic] and ident not in self.live_only.get(topic, ())
         ]
         for topic in topics:
             self.pending_live[topic] = []
@@ -396,18 +465,63 @@ class Router:
         if not seen or not pending or self.inputs[topic].sub.get_publisher_count() != 1:
             return set()
         last_relayed = max(
-            (i for i, (ident, _, _) in enumerate(pending) if ident in seen), default=-1
-        )
+            (i for i, (ident, _, _) in enumerate(pending) if ident in seen), default=0
+        )  # 0 when none was: pending[:-1] would leave out every one but the last
         window = self.windows[topic]
         quarantined = self._quarantined  # skipped anyway, and counted as such
+        applied = self.live_only.get(topic, set())
         return {ident for ident, _, _ in pending[:last_relayed]
-                if ident not in seen and ident not in window
+                if ident not in seen and ident not in window and ident not in applied
                 and (topic, ident) not in quarantined}
+
+    def _apply_live_only(self, inp: Input, relayed: MessageId) -> None:
+        """Before the relayed message ``relayed``, apply the live messages of its topic that
+        came before it from the same publisher and that the relay will never deliver.
+
+        The relay sends what the ring received, in the ring's order, which is the publisher's.
+        So a live message waiting with a sequence number between the last message applied and
+        a relayed one, that the shadow topic has not delivered, is one the ring never received:
+        after an outage longer than the DDS lease the live reader was matched again before the
+        ring. Applied now, in the live reader's order, it keeps the publisher's order, and the
+        node loses only what reached neither reader; the SWITCHED status names them
+        (``live_only``), so that the supervisor leaves them out of the input gap it reports.
+
+        Only with one publisher (as :meth:`_passed_by_relay`), and only between the last
+        message applied and ``relayed`` in both parts of the identity (sequence number and
+        source stamp): anything else waits for the switch, and what the relay passed then is
+        left out there.
+        """
+        topic = inp.topic
+        pending = self.pending_live[topic]
+        start = self._scanned.get(topic, 0)
+        if start >= len(pending) or inp.sub.get_publisher_count() != 1:
+            return
+        seen = self.shadow_seen.get(topic, set())
+        window = self.windows[topic]
+        applied = self.live_only.setdefault(topic, set())
+        with self.lock:
+            i = start
+            while i < len(pending) and inp.phase is _HANDOVER:
+                ident, raw, info = pending[i]
+                if ident[1] >= relayed[1]:
+                    break  # the live reader is ahead of the relay: it will deliver this
+                newest = window.newest
+                between = ident[0] <= relayed[0] and (
+                    newest is None or (ident[1] > newest[1] and ident[0] >= newest[0]))
+                if (between and ident not in seen and ident not in window
+                        and ident not in applied and (topic, ident) not in self._quarantined):
+                    self._apply(inp, raw, info, ident, log=True)
+                    applied.add(ident)
+                # Anything else is settled: delivered, applied, or not between the two (left
+                # to the switch).
+                i += 1
+            self._scanned[topic] = i
 
     def _note_relayed(self, topic: str, ident: MessageId) -> None:
         state = self.handover.setdefault(topic, _HandoverEvidence())
         state.relayed.append(ident)
-        state.last_relay_ns = time.time_ns()
+        state.waiting_ns = 0
+        self.relay_heard_ns = self.clock()
 
     def _maybe_switch(self, topic: str) -> None:
         """Switch a topic to its live reader once that reader is seen to carry the relay.
@@ -436,6 +550,8 @@ class Router:
             inp.phase = transition(topic, inp.phase, TopicPhase.LIVE)
             passed = self._drain([topic]).get(topic, [])
             self.shadow_seen.pop(topic, None)
+            live_only = sorted(ident[1] for ident in self.live_only.pop(topic, ()))
+            self._scanned.pop(topic, None)
         self.handover.pop(topic, None)
         if passed:
             self.stats['passed_by_relay'] += len(passed)
@@ -446,4 +562,5 @@ class Router:
                 'the same publisher: not applied, to keep its order (RORY\'s recorder never '
                 'got them; see the input gap)'
             )
-        self._status(SwitchedStatus(topic=topic, passed_by_relay=tuple(passed)))
+        self._status(SwitchedStatus(topic=topic, passed_by_relay=tuple(passed),
+                                    live_only=tuple(live_only)))

@@ -643,6 +643,8 @@ class NodeRuntime:
             self._status(SyncedStatus(nonce=envelope.nonce, live_publishers=counts))
         elif isinstance(envelope, protocol.Msg):
             self.router.from_shadow(envelope)
+        elif isinstance(envelope, protocol.Alive):
+            self.router.relay_alive()
         elif isinstance(envelope, protocol.Open):
             self._open_outputs()
         else:

@@ -48,9 +48,11 @@ from ..errors import LogError
 from ..log import LogEntry, SegmentStore, SegmentWriter
 from ..protocol import (
     FLAG_RELAY,
+    RELAY_KEEPALIVE_S,
     MessageId,
     ReplayPace,
     SignedPublisher,
+    pack_alive,
     pack_msg,
     pack_release,
 )
@@ -61,6 +63,18 @@ from .ring import Ring
 from .states import LOG_PREFIX
 
 _logger = logging.getLogger('rory.supervisor')
+
+GAP_HOLD_S = 15.0
+"""How long a gap the relay shows (seen after R was sealed) waits for its topic's switch before
+it is reported as the ring saw it.
+
+The node may have received some of those messages on its live reader and applied them (its
+SWITCHED status names them, ``live_only``); the gap reported leaves them out. A node switches
+a topic once three relayed messages also came live, or after its live messages waited 10 s
+with nothing of the topic relayed (``routing.RELAY_WAIT_NS``): 15 s covers both for inputs of
+0.2 Hz and up. A gap still held then (a handover that does not end: the publisher stopped) is
+reported whole; the ``switched`` event lists what the node applied of it, if it switches later.
+A gap is also reported whole when the recovery stops before its topic switched."""
 
 
 def absorbed_identities(
@@ -108,6 +122,8 @@ class RecoveryLog:
         # live reader does not make this grow.
         self.relay: deque[LogEntry] = deque()
         self.sealed = False
+        # How many gaps were seen before the seal: the later ones were seen in the relay.
+        self.gaps_before_seal: int | None = None
         self.cond = threading.Condition()
 
     @property
@@ -190,6 +206,7 @@ class RecoveryLog:
             if self.sealed:
                 return
             self.sealed = True
+            self.gaps_before_seal = len(self._sequence.gaps)
             if self._writer is not None:
                 self._writer.close()
                 self._writer = None
@@ -354,15 +371,28 @@ class ReplayStreamer(threading.Thread):
         self._relay()
 
     def _relay(self) -> None:
+        """Relay what the ring receives; with nothing to send for RELAY_KEEPALIVE_S, send an
+        ALIVE, so that the node does not take an idle relay for a dead supervisor (its ring may
+        receive nothing for a while: a link outage longer than the DDS lease)."""
+        last_sent = time.monotonic()
         while not self._stopped.is_set():
+            entry = None
             with self._rlog.cond:
                 while not self._rlog.relay and not self._stopped.is_set():
-                    self._rlog.cond.wait(0.5)
+                    idle = time.monotonic() - last_sent
+                    if idle >= RELAY_KEEPALIVE_S:
+                        break
+                    self._rlog.cond.wait(RELAY_KEEPALIVE_S - idle)
                 if self._stopped.is_set():
                     return
-                entry = self._rlog.relay.popleft()
-            if entry.topic not in self.switched:
+                if self._rlog.relay:
+                    entry = self._rlog.relay.popleft()
+            if entry is None:
+                self._pub.publish(pack_alive(self._incarnation))
+                last_sent = time.monotonic()
+            elif entry.topic not in self.switched:
                 self._send(entry, FLAG_RELAY)
+                last_sent = time.monotonic()
 
 
 @dataclass
@@ -382,6 +412,15 @@ class Recovery:
     streamer: ReplayStreamer | None = None
     crashes: int = 1
     safe_state_held: bool = field(default=False, init=False)  # from S1 until it is left
+    # Topics the node switched to their live readers, and per topic the sequence numbers it
+    # applied from its live reader that the relay never delivered (SWITCHED's live_only).
+    switched: set[str] = field(default_factory=set, init=False)
+    live_only: dict[str, set[int]] = field(default_factory=dict, init=False)
+    # Each gap as it is reported (narrowed by live_only), fixed once reported; the clock when
+    # a gap the relay showed was first held back; whether the recovery has stopped.
+    _reported: dict[InputGap, list[InputGap]] = field(default_factory=dict, init=False)
+    _held_since: dict[InputGap, float] = field(default_factory=dict, init=False)
+    _stopped: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
         self.timings = Timings(crashed=self.crashed)
@@ -484,7 +523,12 @@ class Recovery:
             self.safety.release(self.node_id)
 
     def input_gaps(self, trustworthy: Callable[[InputGap], bool]) -> list[InputGap]:
-        """Gaps in the inputs' sequence numbers seen by this recovery so far.
+        """Gaps in the inputs' sequence numbers seen by this recovery so far: what reached
+        neither the ring nor, by the node's SWITCHED status, its live reader.
+
+        A gap seen in the relay (after R was sealed) is held back until its topic switched,
+        for at most :data:`GAP_HOLD_S`, or until the recovery stopped: only then is it known
+        which of its messages the node applied from its live reader.
 
         Args:
             trustworthy: Whether a gap's sequence numbers are one publisher's, reliably sent
@@ -493,7 +537,45 @@ class Recovery:
         if self.rlog is None:
             return []
         with self.rlog.cond:
-            return [gap for gap in self.rlog.gaps if trustworthy(gap)]
+            gaps = list(self.rlog.gaps)
+            before_seal = self.rlog.gaps_before_seal
+        found: list[InputGap] = []
+        for index, gap in enumerate(gaps):
+            if not trustworthy(gap):
+                continue
+            reported = self._reported.get(gap)
+            if reported is None:
+                in_relay = before_seal is not None and index >= before_seal
+                if in_relay and gap.topic not in self.switched and not self._stopped:
+                    since = self._held_since.setdefault(gap, self.clock())
+                    if self.clock() - since < GAP_HOLD_S:
+                        continue
+                reported = self._reported[gap] = self._narrow(gap)
+            found.extend(reported)
+        return found
+
+    def _narrow(self, gap: InputGap) -> list[InputGap]:
+        """``gap`` without what the node applied from its live reader (one gap, several, or
+        none)."""
+        applied = sorted(s for s in self.live_only.get(gap.topic, ())
+                         if gap.first <= s <= gap.last)
+        if not applied:
+            return [gap]
+        pieces: list[InputGap] = []
+        first = gap.first
+        for seq in [*applied, gap.last + 1]:
+            if seq > first:
+                pieces.append(InputGap(gap.topic, first, seq - 1, gap.seen_after_ns,
+                                       gap.publishers))
+            first = seq + 1
+        left = ', '.join(str(p.first) if p.first == p.last else f'{p.first}-{p.last}'
+                         for p in pieces)
+        _logger.info(
+            '%s %s: input %s: publication seq %s, which RORY\'s reader never got, reached the '
+            'node\'s live reader and were applied in order; %s', LOG_PREFIX, self.node_id,
+            gap.topic, protocol.seq_ranges(applied),
+            f'the input gap is {left}' if left else 'no input gap is left')
+        return pieces
 
     def r_summary(self) -> dict[str, dict[str, int | None]]:
         """What R holds per topic (:meth:`RecoveryLog.summary`); empty without R."""
@@ -503,8 +585,26 @@ class Recovery:
         """Messages R dropped as never delivered to the node, per topic; empty without R."""
         return {} if self.rlog is None else self.rlog.never_delivered()
 
-    def on_switched(self, topic: str) -> bool:
-        """A topic is live again; stop relaying it. Returns True when every topic is."""
+    def on_switched(self, topic: str, live_only: Iterable[int] = ()) -> bool:
+        """A topic is live again; stop relaying it. Returns True when every topic is.
+
+        Args:
+            topic: The topic.
+            live_only: Sequence numbers the node applied from its live reader that the relay
+                never delivered: left out of the input gaps (:meth:`input_gaps`).
+        """
+        self.switched.add(topic)
+        applied = set(live_only)
+        if applied:
+            self.live_only.setdefault(topic, set()).update(applied)
+            for gap in self._reported:
+                late = sorted(s for s in applied if gap.first <= s <= gap.last)
+                if gap.topic == topic and late:
+                    _logger.warning(
+                        '%s %s: input %s: of the gap reported before the topic switched '
+                        '(publication seq %d-%d), %s reached the node\'s live reader and were '
+                        'applied', LOG_PREFIX, self.node_id, topic, gap.first, gap.last,
+                        protocol.seq_ranges(late))
         if self.streamer is not None:
             self.streamer.switched.add(topic)
         if self.ring is not None and topic in self.ring.topics:
@@ -526,7 +626,9 @@ class Recovery:
 
     def stop(self) -> None:
         """Stop the relay and seal R; the safe state stays as it is (held until S4). For the
-        supervisor stopping, and for a crash after S4 that starts a recovery of its own."""
+        supervisor stopping, and for a crash after S4 that starts a recovery of its own. Gaps
+        held back for a switch are no longer (:meth:`input_gaps`)."""
+        self._stopped = True
         if self.streamer is not None:
             self.streamer.stop()
             self.streamer = None

@@ -441,6 +441,7 @@ class ManagedNode:
             # Crashed during the handover of an earlier recovery, whose S4 released the safe
             # state: that one ends here, and this crash is a recovery of its own.
             rec.stop()
+            self._report_input_gaps(rec)  # also those held back for a switch that never came
         ring = self.ring if self.cfg.method.logs else None
         rec = Recovery(
             node_id=self.id, crashed=ev.at, crashed_ns=ev.at_ns, safety=self.sup.safety,
@@ -487,8 +488,10 @@ class ManagedNode:
             self.sup.events_log.write('checkpoint', self.id, **_fields(message))
         elif isinstance(status, SwitchedStatus):
             self.sup.events_log.write('switched', self.id, topic=status.topic,
-                                      passed_by_relay=list(status.passed_by_relay))
-            if self.recovery is not None and self.recovery.on_switched(status.topic):
+                                      passed_by_relay=list(status.passed_by_relay),
+                                      live_only=list(status.live_only))
+            if self.recovery is not None and self.recovery.on_switched(status.topic,
+                                                                       status.live_only):
                 self._end_recovery()
         elif isinstance(status, InputsStatus):
             self._on_inputs(status)
@@ -732,9 +735,9 @@ class ManagedNode:
             # Every topic is live again, but S4 waits for the gate; the release ends it.
             return
         if self.recovery is not None:
-            self._report_input_gaps(self.recovery)
             # Leaves the safe state if S4 has not: the node exited (status 0) while recovering.
             self.recovery.finish()
+            self._report_input_gaps(self.recovery)  # after finish: none is held back any more
             self.recovery = None
         self._retire_shadow_topics()
 
@@ -924,8 +927,8 @@ class ManagedNode:
         self._drop_standby()
         if self.recovery is not None:
             # The safe state stays as it is: held if the node had not been released.
-            self._report_input_gaps(self.recovery)
             self.recovery.stop()
+            self._report_input_gaps(self.recovery)  # after stop: none is held back any more
         child = self.child
         if child is not None:
             for sig, grace in zip(

@@ -18,8 +18,10 @@ from rory_runtime.errors import ProtocolError
 from rory_runtime.freshness import Verdict
 from rory_runtime.protocol import (
     FLAG_RELAY,
+    RELAY_KEEPALIVE_S,
     SEQ_MASK,
     TAG_BYTES,
+    Alive,
     CheckpointStatus,
     EnvelopeKind,
     ErrorStatus,
@@ -44,6 +46,7 @@ from rory_runtime.protocol import (
     decode_status,
     encode_status,
     message_id,
+    pack_alive,
     pack_msg,
     pack_open,
     pack_release,
@@ -89,6 +92,7 @@ VALID_ENVELOPES = [
     pytest.param(sample_msg(data=b'', topic='/t'), id='msg-empty-data'),
     pytest.param(sample_msg(data=b'\x01\x02\x03', topic='/odd'), id='msg-odd-length'),
     pytest.param(pack_release(9, 12, 345), id='release'),
+    pytest.param(pack_alive(9), id='alive'),
 ]
 
 
@@ -101,6 +105,16 @@ def test_sync_round_trips_every_field() -> None:
 
 def test_open_round_trips() -> None:
     assert unpack(pack_open(2**32 - 1)) == Open(2**32 - 1)
+
+
+def test_alive_round_trips() -> None:
+    assert unpack(pack_alive(2**32 - 1)) == Alive(2**32 - 1)
+
+
+def test_alive_is_a_bare_head() -> None:
+    # What the relay sends every RELAY_KEEPALIVE_S when idle: no body at all.
+    assert payload_of(pack_alive(7)) == struct.pack('<2sBBI', b'RY', 1, EnvelopeKind.ALIVE, 7)
+    assert EnvelopeKind.ALIVE == 5 and 0 < RELAY_KEEPALIVE_S <= 0.5
 
 
 def test_release_round_trips_every_field() -> None:
@@ -220,6 +234,8 @@ def fixed_part(raw: bytes) -> int:
     env = unpack(raw)
     if isinstance(env, Msg):
         return 8 + struct.calcsize('<BqqIH') + len(env.topic.encode())
+    if isinstance(env, Alive):
+        return 8  # the head alone
     return 8 + (8 if isinstance(env, Sync) else 16)
 
 
@@ -273,7 +289,7 @@ def test_wrong_version_raises_protocol_error(version: int) -> None:
         unpack(wrap(bytes(payload)))
 
 
-@pytest.mark.parametrize('kind', [0, 5, 6, 255])
+@pytest.mark.parametrize('kind', [0, 6, 7, 255])
 def test_unknown_kind_raises_protocol_error(kind: int) -> None:
     assert kind not in {k.value for k in EnvelopeKind}
     payload = bytearray(payload_of(pack_release(1, 2, 3)))
@@ -321,7 +337,7 @@ def _unpack_or_protocol_error(raw: bytes) -> None:
         env = unpack(raw)
     except ProtocolError:
         return
-    assert isinstance(env, Sync | Msg | Release | Open)
+    assert isinstance(env, Sync | Msg | Release | Open | Alive)
 
 
 @settings(max_examples=300, deadline=None, derandomize=True)
@@ -393,7 +409,7 @@ STATUSES: dict[str, Status] = {
     'checkpoint': CheckpointStatus(seq=3, cut=5, size=1024, stall_ms=0.25, total_ms=4.125),
     'checkpoint_no_cut': CheckpointStatus(seq=1, cut=None, size=64, stall_ms=0.0,
                                           total_ms=1.0),
-    'switched': SwitchedStatus(topic='/numbers', passed_by_relay=(4, 5, 9)),
+    'switched': SwitchedStatus(topic='/numbers', passed_by_relay=(4, 5, 9), live_only=(2, 3)),
     'inputs': InputsStatus(inputs=TWO_INPUTS),
     'error': ErrorStatus(message='checkpoint skipped: pose: \u00fc "quoted" \\ \U0001f680'),
 }
@@ -459,10 +475,11 @@ PINNED = {
         '"node":"integrator","sent_ns":1700000000123456789,"seq":1,'
         '"sig":"8d041a1e47cf82aa60d7f7f1e04af7e5","stall_ms":0.0,"total_ms":1.0}'
     ),
+    # live_only added since (issue 35): what the node applied live that the relay never had.
     'switched': (
-        '{"incarnation":3,"kind":"switched","node":"integrator","passed_by_relay":[4,5,'
-        '9],"sent_ns":1700000000123456789,"sig":"946fa64f08e3887bb1d86609648dd0d6",'
-        '"topic":"/numbers"}'
+        '{"incarnation":3,"kind":"switched","live_only":[2,3],"node":"integrator",'
+        '"passed_by_relay":[4,5,9],"sent_ns":1700000000123456789,'
+        '"sig":"5cf5bf685054f6c53e949e045afaf2ea","topic":"/numbers"}'
     ),
     'inputs': (
         '{"incarnation":3,"inputs":[{"depth":10,"reliable":true,"topic":"/numbers",'
@@ -558,6 +575,8 @@ def test_decode_status_refuses_malformed_text(text: str) -> None:
         ('checkpoint', {'bytes': None}, 'checkpoint status lacks bytes'),
         ('switched', {'passed_by_relay': [1, '2']},
          'switched status: passed_by_relay must be an array of integers'),
+        ('switched', {'live_only': None}, 'switched status lacks live_only'),
+        ('switched', {'live_only': 7}, 'switched status: live_only must be an array of integers'),
         ('error', {'message': 5}, 'error status: message must be a string, not an integer'),
     ],
 )
@@ -766,7 +785,7 @@ KEY = bytes(range(32))
 
 
 @pytest.mark.parametrize('raw', [
-    pack_sync(4, 99), pack_release(4, 7, 8),
+    pack_sync(4, 99), pack_release(4, 7, 8), pack_alive(4),
     pack_msg(4, topic='/scan', recv_ns=1, source_ns=2, seq=3, data=b'\x00' * 1001),
 ])
 def test_a_signed_envelope_is_read_with_the_runs_key(raw: bytes) -> None:
@@ -783,6 +802,14 @@ def test_an_envelope_that_is_unsigned_tampered_or_signed_with_another_key_is_ref
         unpack(bytes(forged), KEY)
     with pytest.raises(ProtocolError, match='signature does not match'):
         unpack(sign(raw, bytes(32)), KEY)
+
+
+def test_an_alive_from_anyone_without_the_key_is_refused() -> None:
+    # An ALIVE keeps a node waiting for the relay: a forged one must not.
+    with pytest.raises(ProtocolError, match='not signed'):
+        unpack(pack_alive(4), KEY)
+    with pytest.raises(ProtocolError, match='signature does not match'):
+        unpack(sign(pack_alive(4), bytes(32)), KEY)
 
 
 def test_a_signed_status_is_read_and_a_forged_one_refused() -> None:

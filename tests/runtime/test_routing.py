@@ -8,7 +8,11 @@ same paths run for real in tests/integration.
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pytest
 from rclpy.qos import QoSProfile
@@ -22,9 +26,10 @@ from runtime_fakes import (
 
 from rory_runtime import protocol, routing
 from rory_runtime.errors import RoryError
+from rory_runtime.event_clock import Reading
 from rory_runtime.log import read_segment
-from rory_runtime.protocol import Method, Mode
-from rory_runtime.routing import IllegalPhaseChange, TopicPhase, transition
+from rory_runtime.protocol import MessageId, Method, Mode, Status, SwitchedStatus
+from rory_runtime.routing import IllegalPhaseChange, Router, TopicPhase, transition
 from rory_runtime.runtime import NodeRuntime
 
 
@@ -158,14 +163,39 @@ def _outage_handover(rt: NodeRuntime, sub: FakeSubscription) -> None:
     assert rt.router.phase('/numbers') is TopicPhase.LIVE
 
 
-def test_a_message_only_the_live_reader_got_is_never_applied_after_later_ones(
+def test_a_message_only_the_live_reader_got_is_applied_before_the_relayed_one_after_it(
     tmp_path: Path, applied: list[int]
 ) -> None:
+    # The relay sends in the ring's order, the publisher's: 5, waiting live when 6 came by
+    # relay, is one the ring never got. Applied just before 6, it keeps the publisher's order.
     rt = make_runtime(tmp_path, Mode.RECOVER)
     sub = adopt_numbers(rt, applied)
     _outage_handover(rt, sub)
     deliver_live(sub, 10)
-    # 5 came before 6 from the one publisher; applying it after 6-8 would reorder its stream
+    assert applied == [1, 2, 3, 5, 6, 7, 8, 9, 10]
+    assert rt.stats['passed_by_relay'] == 0 and not rt.reported_errors
+    rt.close()
+    logged = [e.seq for n in rt.segments.numbers() for e in read_segment(rt.segments.path(n))]
+    assert logged == [5, 6, 7, 8, 9, 10]  # applied after release: the node logged each
+
+
+def test_a_message_the_live_reader_got_after_later_ones_came_by_relay_is_never_applied(
+    tmp_path: Path, applied: list[int]
+) -> None:
+    # The same outage, but 6 came by relay before the live reader delivered 5: applying 5
+    # now would apply the publisher's messages out of order. It is left out, and said.
+    rt = make_runtime(tmp_path, Mode.RECOVER)
+    sub = adopt_numbers(rt, applied)
+    for n in (1, 2, 3):
+        rt.router.from_shadow(shadow(n))
+    rt.open_gates(next_segment=5)
+    rt.router.from_shadow(shadow(6, relay=True))
+    for n in (5, 6, 7, 8, 9):
+        deliver_live(sub, n)
+    for n in (7, 8):
+        rt.router.from_shadow(shadow(n, relay=True))
+    assert rt.router.phase('/numbers') is TopicPhase.LIVE
+    deliver_live(sub, 10)
     assert applied == [1, 2, 3, 6, 7, 8, 9, 10]
     assert rt.stats['passed_by_relay'] == 1
     assert any('/numbers: 1 message(s) (publication seq 5)' in e for e in rt.reported_errors)
@@ -211,6 +241,187 @@ def test_silent_relay_switches_the_topic_to_live_instead_of_stalling(
     assert rt.router.phase('/numbers') is TopicPhase.LIVE
     assert applied == [1, 2]
     assert any('no relay for /numbers' in e for e in rt.reported_errors)
+
+
+# -- the handover after a link outage longer than the DDS lease (issue 35) ---------------------
+#
+# The publisher matches the node's live reader and the supervisor's ring again each on its own
+# schedule. These drive a Router alone, with a clock of their own, through each order.
+
+
+class _Clock:
+    """Wall-clock nanoseconds that move only when told."""
+
+    def __init__(self) -> None:
+        self.ns = 1_700_000_000_000_000_000
+
+    def __call__(self) -> int:
+        return self.ns
+
+    def advance(self, seconds: float) -> None:
+        self.ns += round(seconds * 1e9)
+
+
+@dataclass
+class _Bench:
+    """A Router of a recovering node and what it did: messages applied (number, logged),
+    errors, statuses."""
+
+    router: Router
+    sub: FakeSubscription
+    clock: _Clock
+    applied: list[tuple[int, bool]] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+    statuses: list[Status] = field(default_factory=list)
+
+    def live(self, *numbers: int) -> None:
+        for n in numbers:
+            deliver_live(self.sub, n)
+
+    def relay(self, *numbers: int) -> None:
+        for n in numbers:
+            self.router.from_shadow(shadow(n, relay=True))
+
+    def quiet(self, seconds: float, *, alive: bool, live: list[int] | None = None) -> None:
+        """``seconds`` pass in steps of the relay's keepalive period, with an ALIVE at each
+        step if ``alive``, and one of ``live`` delivered per step while any is left."""
+        waiting = list(live or [])
+        steps = round(seconds / protocol.RELAY_KEEPALIVE_S)
+        for _ in range(steps):
+            self.clock.advance(protocol.RELAY_KEEPALIVE_S)
+            if alive:
+                self.router.relay_alive()
+            if waiting:
+                self.live(waiting.pop(0))
+
+    @property
+    def numbers(self) -> list[int]:
+        return [n for n, _ in self.applied]
+
+    @property
+    def phase(self) -> TopicPhase:
+        return self.router.phase('/numbers')
+
+
+def _bench(*, replayed: tuple[int, ...] = (1, 2, 3)) -> _Bench:
+    """Released after replaying ``replayed``: /numbers in HANDOVER."""
+    clock = _Clock()
+    windows: dict[str, routing.Window] = {}
+    stats = dict.fromkeys(('applied', 'replayed', 'duplicates', 'quarantined',
+                           'passed_by_relay'), 0)
+    applied: list[tuple[int, bool]] = []
+
+    def apply(inp: routing.Input, raw: bytes, info: dict[str, Any], ident: MessageId,
+              readings: Iterable[Reading] = (), *, log: bool) -> None:
+        applied.append((ident[1], log))
+        windows[inp.topic].add(ident)
+
+    errors: list[str] = []
+    statuses: list[Status] = []
+    router = Router(recovering=True, quarantined=frozenset(), lock=threading.RLock(),
+                    windows=windows, stats=stats, apply=apply,
+                    replay_event=lambda msg, readings: None, error=errors.append,
+                    status=statuses.append, clock=clock)
+    sub = FakeSubscription('/numbers', lambda msg: None)
+    router.adopt(sub, released=False)  # type: ignore[arg-type]
+    for n in replayed:
+        router.from_shadow(shadow(n))
+    router.release()
+    assert router.phase('/numbers') is TopicPhase.HANDOVER
+    return _Bench(router, sub, clock, applied, errors, statuses)
+
+
+def test_the_live_reader_back_first_waits_for_a_relay_that_is_alive_then_loses_nothing_it_got(
+) -> None:
+    # Link down: nothing for 4 s; the relay has nothing to relay and says it is alive. Then
+    # the node's reader is matched again first and gets 7-10 while the ring has nothing, for
+    # 3 s: longer than RELAY_SILENCE_NS, yet no switch, since the relay is alive. Then the ring
+    # is matched again at 9: 7 and 8 reached only the live reader and are applied before 9.
+    b = _bench()
+    b.quiet(4.0, alive=True)
+    b.quiet(3.0, alive=True, live=[7, 8, 9, 10])
+    assert routing.RELAY_SILENCE_NS < 3.0e9
+    assert b.phase is TopicPhase.HANDOVER and b.errors == [] and b.numbers == [1, 2, 3]
+    b.relay(9)
+    assert b.applied[3:] == [(7, True), (8, True), (9, True)]  # live ones logged, in order
+    b.relay(10)
+    b.live(11)
+    b.relay(11)  # 9, 10, 11 came both ways: switched
+    assert b.phase is TopicPhase.LIVE
+    b.live(12)
+    assert b.numbers == [1, 2, 3, 7, 8, 9, 10, 11, 12]
+    assert b.statuses == [SwitchedStatus(topic='/numbers', passed_by_relay=(), live_only=(7, 8))]
+    assert b.errors == []
+
+
+def test_the_ring_back_first_relays_in_order_and_nothing_is_applied_from_live_alone() -> None:
+    # The other order: the ring is matched again at 5, the live reader at 7, and the live
+    # copies run ahead of the relay. Nothing the relay will deliver is taken from live early.
+    b = _bench()
+    b.quiet(4.0, alive=True)
+    b.relay(5)
+    b.live(7, 8)
+    b.relay(6)
+    assert b.numbers == [1, 2, 3, 5, 6]
+    b.relay(7, 8)
+    b.live(9)
+    b.relay(9)
+    assert b.phase is TopicPhase.LIVE
+    assert b.numbers == [1, 2, 3, 5, 6, 7, 8, 9]
+    assert b.statuses == [SwitchedStatus(topic='/numbers', passed_by_relay=(), live_only=())]
+
+
+def test_a_live_message_older_than_what_was_applied_is_never_applied_before_a_relayed_one(
+) -> None:
+    # 3 never came through the shadow topic (the ring dropped it as never delivered to the
+    # old process), and a transient-local publisher sends it to the new reader: it is older
+    # than 4, applied already, so it waits for the switch, which leaves it out.
+    b = _bench(replayed=(1, 2, 4, 5))
+    b.live(3, 6, 7)
+    b.relay(6, 7)
+    assert b.numbers == [1, 2, 4, 5, 6, 7]
+    b.live(8)
+    b.relay(8)
+    assert b.phase is TopicPhase.LIVE and b.numbers == [1, 2, 4, 5, 6, 7, 8]
+    assert b.statuses == [SwitchedStatus(topic='/numbers', passed_by_relay=(3,), live_only=())]
+
+
+def test_a_relay_truly_silent_for_longer_than_the_silence_bound_is_taken_for_gone() -> None:
+    # No ALIVE, no message: the supervisor died. The node switches rather than stall, and
+    # says what it can tell it missed (4-6, between the last applied and the first live).
+    # 7 is applied too: none of the live messages waiting ever came by the shadow topic, and
+    # the switch used to leave out all of them but the last as passed by the relay.
+    b = _bench()
+    b.quiet(1.5, alive=False)
+    b.live(7)
+    assert b.phase is TopicPhase.HANDOVER
+    b.quiet(1.0, alive=False)
+    b.live(8)
+    assert b.phase is TopicPhase.LIVE
+    assert b.numbers == [1, 2, 3, 7, 8]
+    (error,) = b.errors
+    assert error.startswith('no relay for /numbers; switching it to live unconfirmed: '
+                            "nothing from the supervisor's relay for 2.5 s")
+    assert error.endswith('publication seq 4-6 never reached this node')
+
+
+def test_an_alive_relay_that_relays_nothing_of_a_topic_is_waited_for_only_so_long() -> None:
+    # The relay is alive, but the ring is never matched again with the publisher: the topic
+    # switches once its live messages have waited RELAY_WAIT_NS, with an error naming it.
+    b = _bench()
+    wait_s = routing.RELAY_WAIT_NS / 1e9
+    b.live(7)
+    b.quiet(wait_s, alive=True, live=list(range(8, 8 + round(wait_s / 0.5))))
+    assert b.phase is TopicPhase.HANDOVER and b.errors == []  # 10 s since 7 came, not more
+    b.quiet(0.5, alive=True)
+    b.live(100)
+    assert b.phase is TopicPhase.LIVE
+    (error,) = b.errors
+    assert error.startswith('no relay for /numbers; switching it to live unconfirmed: the '
+                            'relay is alive but relayed nothing of it while its live messages '
+                            'waited 10.5 s')
+    assert error.endswith('publication seq 4-6 never reached this node')
+    assert b.numbers[:4] == [1, 2, 3, 7] and b.numbers[-1] == 100
 
 
 def test_live_duplicate_of_an_absorbed_message_is_skipped_after_release(

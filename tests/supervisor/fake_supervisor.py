@@ -177,13 +177,23 @@ class FakeRosNode:
         return object()
 
 
+@dataclasses.dataclass
+class FakeRingTopic:
+    """One reader of the ring, as the supervisor reads it (``ring.RingTopic``)."""
+
+    spec: InputSpec
+
+    def publisher_count(self) -> int:
+        return 1
+
+
 class FakeRing:
     """A ring whose readers always match and never take a message: it records which sink it
     was activated for (with the entries an early capture handed over), and which topics are
     active, as the real one does."""
 
     def __init__(self) -> None:
-        self.topics: dict[str, InputSpec] = {}
+        self.topics: dict[str, FakeRingTopic] = {}
         self.active_topics: set[str] = set()
         self.sinks: list[Any] = []  # every activation's sink, in order
         self.handed_over: list[list[LogEntry]] = []  # and what led its backlog
@@ -193,7 +203,7 @@ class FakeRing:
         return len(self.sinks)
 
     def ensure(self, inputs: list[InputSpec]) -> None:
-        self.topics.update({spec.topic: spec for spec in inputs})
+        self.topics.update({spec.topic: FakeRingTopic(spec) for spec in inputs})
 
     def publisher_counts(self) -> dict[str, int]:
         return dict.fromkeys(self.topics, 1)

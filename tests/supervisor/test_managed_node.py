@@ -371,6 +371,32 @@ def test_the_handover_ends_the_recovery_without_releasing_the_safe_state_again(
     assert h.sup.safety.log == ONCE and h.node.sm.state == S.RUNNING
 
 
+def _relayed(seq: int) -> LogEntry:
+    """Message ``seq`` of the node's input, as the ring takes it after the release."""
+    return LogEntry(INPUT.topic, INPUT.msgtype, seq, seq, seq, b'\x00\x01\x00\x00')
+
+
+def test_a_gap_in_the_relay_is_reported_at_the_switch_without_what_the_node_had_live(
+    tmp_path: Path
+) -> None:
+    # After a link outage longer than the lease the ring got 1, 2, then 10; the node's live
+    # reader was matched again first and got 7 on, and applied 7-9 before the relayed 10.
+    h = _logging(tmp_path)
+    h.exit(-signal.SIGKILL)
+    h.up()
+    rec = h.node.recovery
+    assert rec is not None and rec.rlog is not None and rec.rlog.sealed
+    for seq in (1, 2, 10):
+        rec.rlog.add(_relayed(seq))
+    h.tick(1.0)  # held back: only the switch says what the node had live
+    assert h.sup.events_log.of('input_gap') == []
+    h.status(SwitchedStatus(topic=INPUT.topic, passed_by_relay=(), live_only=(7, 8, 9)))
+    assert h.node.recovery is None
+    (gap,) = h.sup.events_log.of('input_gap')
+    assert (gap['topic'], gap['first'], gap['last'], gap['missing']) == (INPUT.topic, 3, 6, 4)
+    assert h.sup.events_log.of('switched')[0]['live_only'] == [7, 8, 9]
+
+
 def test_a_crash_during_the_handover_is_a_recovery_of_its_own(tmp_path: Path) -> None:
     h = _logging(tmp_path)
     (ring,) = h.sup.rings

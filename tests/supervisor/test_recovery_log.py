@@ -10,7 +10,14 @@ from std_msgs.msg import Int64
 
 from rory_runtime.log import LogEntry, SegmentStore, read_segment
 from rory_runtime.store import Checkpoint, CheckpointStore
-from rory_runtime.supervisor.recovery import RecoveryLog, Timings, absorbed_identities
+from rory_runtime.supervisor.lineage import InputGap
+from rory_runtime.supervisor.recovery import (
+    GAP_HOLD_S,
+    Recovery,
+    RecoveryLog,
+    Timings,
+    absorbed_identities,
+)
 
 NODE = 'integrator'
 INT64 = 'std_msgs/msg/Int64'
@@ -372,3 +379,105 @@ def test_the_summary_places_r_after_what_the_node_logged(segments: SegmentStore)
         '/odom': {'logged_through': None, 'entries': 1, 'first_seq': 7, 'last_seq': 7,
                   'never_delivered': 0},
     }
+
+
+# --------------------------------------------------------------------------- gaps and the handover
+#
+# After a link outage longer than the DDS lease the node's live reader may be matched with the
+# publisher again before the ring: it then applies, before the first relayed message, what only
+# it received, and names those in SWITCHED (live_only). The gap reported is what reached
+# neither reader (issue 35).
+
+
+class _Safety:
+    def hold(self, node_id: str) -> None:
+        pass
+
+    def release(self, node_id: str) -> None:
+        pass
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _recovery(segments: SegmentStore, checkpoints: CheckpointStore,
+              clock: _Clock | None = None) -> Recovery:
+    """A recovery whose R knows the node logged /numbers 1..10, took 11..15 and 17..20 before
+    the release (16 never arrived), and relayed 31..35 after it (21..30 never reached R)."""
+    rec = Recovery(node_id=NODE, crashed=0.0, crashed_ns=0, safety=_Safety(), ring=None,
+                   segments=segments, checkpoints=checkpoints, clock=clock or _Clock())
+    rec.rlog = RecoveryLog(segments, {'/numbers': {e.ident for e in _numbers(range(1, 11))}})
+    rec.rlog.add_backlog(_numbers([*range(11, 16), *range(17, 21)]))
+    rec.rlog.seal()
+    add_each(rec.rlog, _numbers(range(31, 36)))
+    return rec
+
+
+def _spans(gaps: list[InputGap]) -> list[tuple[int, int]]:
+    return [(g.first, g.last) for g in gaps]
+
+
+def every(_gap: InputGap) -> bool:
+    return True
+
+
+def test_a_gap_seen_in_the_relay_waits_for_the_switch_and_leaves_out_what_the_node_had_live(
+    segments: SegmentStore, checkpoints: CheckpointStore,
+) -> None:
+    rec = _recovery(segments, checkpoints)
+    # Seen before the release: reported at once. Seen in the relay: the node may have some.
+    assert _spans(rec.input_gaps(every)) == [(16, 16)]
+    rec.on_switched('/numbers', live_only=range(25, 31))
+    assert _spans(rec.input_gaps(every)) == [(16, 16), (21, 24)]
+    assert rec.input_gaps(every)[1].to_json() == {'topic': '/numbers', 'first': 21,
+                                                  'last': 24, 'missing': 4}
+
+
+def test_what_the_node_had_live_may_split_a_gap_or_close_it(
+    segments: SegmentStore, checkpoints: CheckpointStore,
+) -> None:
+    rec = _recovery(segments, checkpoints)
+    rec.on_switched('/numbers', live_only=[22, 23, 27, 99])  # 99: no gap of R's
+    assert _spans(rec.input_gaps(every)) == [(16, 16), (21, 21), (24, 26), (28, 30)]
+    closed = _recovery(segments, checkpoints)
+    closed.on_switched('/numbers', live_only=range(21, 31))
+    assert _spans(closed.input_gaps(every)) == [(16, 16)]
+
+
+def test_a_held_gap_is_reported_whole_once_it_waited_long_enough(
+    segments: SegmentStore, checkpoints: CheckpointStore, caplog: pytest.LogCaptureFixture,
+) -> None:
+    # A handover that does not end (the publisher stopped): after GAP_HOLD_S the gap is
+    # reported as the ring saw it, and stays so; what the node says later is logged.
+    clock = _Clock()
+    rec = _recovery(segments, checkpoints, clock)
+    assert _spans(rec.input_gaps(every)) == [(16, 16)]
+    clock.now += GAP_HOLD_S - 0.1
+    assert _spans(rec.input_gaps(every)) == [(16, 16)]
+    clock.now += 0.1
+    assert _spans(rec.input_gaps(every)) == [(16, 16), (21, 30)]
+    rec.on_switched('/numbers', live_only=range(25, 31))
+    assert _spans(rec.input_gaps(every)) == [(16, 16), (21, 30)]
+    assert 'of the gap reported before the topic switched (publication seq 21-30), 25-30 ' \
+        "reached the node's live reader" in caplog.text
+
+
+def test_a_held_gap_is_reported_whole_when_the_recovery_stops_before_the_switch(
+    segments: SegmentStore, checkpoints: CheckpointStore,
+) -> None:
+    rec = _recovery(segments, checkpoints)
+    rec.stop()  # the supervisor stops, or the node crashes during the handover
+    assert _spans(rec.input_gaps(every)) == [(16, 16), (21, 30)]
+
+
+def test_an_untrustworthy_gap_is_never_reported(
+    segments: SegmentStore, checkpoints: CheckpointStore,
+) -> None:
+    rec = _recovery(segments, checkpoints)
+    rec.stop()
+    assert rec.input_gaps(lambda gap: gap.first != 21) == [rec.input_gaps(every)[0]]

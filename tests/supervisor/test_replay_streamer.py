@@ -17,7 +17,8 @@ from std_msgs.msg import Int64
 from rory_runtime import protocol
 from rory_runtime.errors import LogError
 from rory_runtime.log import LogEntry, SegmentStore, read_segment
-from rory_runtime.protocol import FLAG_RELAY, Msg, Release, ReplayPace, unpack
+from rory_runtime.protocol import FLAG_RELAY, Alive, Msg, Release, ReplayPace, unpack
+from rory_runtime.supervisor import recovery
 from rory_runtime.supervisor.recovery import RecoveryLog, ReplayStreamer, readings_first
 
 NODE = 'integrator'
@@ -87,6 +88,13 @@ def ended(thread: threading.Thread, timeout: float = WAIT) -> bool:
 
 def as_msg(envelope: object, e: LogEntry, flags: int = 0) -> bool:
     return envelope == Msg(INCARNATION, flags, e.recv_ns, e.source_ns, e.seq, e.topic, e.data)
+
+
+@pytest.fixture(autouse=True)
+def no_keepalive(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An idle relay says it is alive (ALIVE) every RELAY_KEEPALIVE_S; the tests that are not
+    about that would see one on a slow machine, so it is an hour unless a test says so."""
+    monkeypatch.setattr(recovery, 'RELAY_KEEPALIVE_S', 3600.0)
 
 
 @pytest.fixture
@@ -254,6 +262,43 @@ def test_switched_topics_are_not_relayed(make: Callable[..., tuple]) -> None:
     assert as_msg(envelopes[3], entry('/a', 13), FLAG_RELAY)
     assert not any(isinstance(e, Msg) and e.topic == '/b' for e in envelopes)
     assert len(rlog.relay) == 0  # switched entries are consumed, not kept
+
+
+def test_an_idle_relay_says_it_is_alive(
+    make: Callable[..., tuple], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Nothing reaches the ring (a link outage): the node must not take the relay for dead.
+    monkeypatch.setattr(recovery, 'RELAY_KEEPALIVE_S', 0.05)
+    streamer, pub, _rlog, released = make([], [entry('/a', 1)])
+    streamer.start()
+    assert released.event.wait(WAIT)
+    pub.wait_for(2 + 3)
+    assert pub.envelopes[2:5] == [Alive(INCARNATION)] * 3
+    assert streamer.sent == 1  # ALIVEs are no messages: RELEASE's count is unchanged
+
+
+def test_an_alive_follows_only_a_keepalive_period_without_anything_sent(
+    make: Callable[..., tuple], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    period = 0.2
+    monkeypatch.setattr(recovery, 'RELAY_KEEPALIVE_S', period)
+    streamer, pub, rlog, released = make([], [entry('/a', 1)])
+    streamer.start()
+    assert released.event.wait(WAIT)
+    rlog.add(entry('/a', 2))
+    # The relayed message, then an ALIVE (on a slow machine another may come before it).
+    deadline = time.monotonic() + WAIT
+    while True:
+        envelopes, times = pub.envelopes, list(pub.times)
+        relayed = [i for i, e in enumerate(envelopes) if i >= 2 and isinstance(e, Msg)]
+        if relayed and len(envelopes) > relayed[0] + 1:
+            break
+        assert time.monotonic() < deadline, envelopes
+        time.sleep(0.01)
+    relayed_at = relayed[0]
+    assert envelopes[relayed_at + 1] == Alive(INCARNATION)
+    # Never sooner than a period after the message: the relay was not idle.
+    assert times[relayed_at + 1] - times[relayed_at] >= period - 0.01
 
 
 def test_stop_ends_the_relay_promptly(make: Callable[..., tuple]) -> None:

@@ -30,6 +30,12 @@ class _Node:
             self.clock._set_ros_time_is_active(True)
             self.clock.set_ros_time_override(Time(nanoseconds=int(sim_now_s * 1e9)))
 
+    class _Context:
+        def ok(self) -> bool:
+            return True
+
+    context = _Context()
+
     def get_logger(self) -> Any:
         return logging.getLogger('test-node')
 

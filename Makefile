@@ -70,12 +70,15 @@ discovery: $(STAMP)
 # twice; ~4 min); crash storms, 1-5 strikes in a row at drawn gaps, on the integrator (~12 min;
 # a wrong schedule is kept in tests/integration/storm_schedules.json); every corpus node with
 # fast replay, SIGKILLed at random times, against its no-crash run (~10 min); then on five real
-# targets x three worlds in the simulator (~30 min).
+# targets x three worlds in the simulator (~30 min); then all four parts again, fewer runs, with
+# two busy processes per core beside them and runs without a fault among them, which must show
+# no kill and no safe state (~16 min on 2 cores; docs/faults.md, "Under load").
 faults: $(STAMP)
 	$(PY) -m rory_eval.faults.fault_campaign --runs 8
 	$(PY) -m rory_eval.faults.storm_campaign --runs 40
 	$(PY) -m rory_eval.faults.corpus_campaign --kills 3
 	$(PY) -m rory_eval.faults.target_faults
+	$(PY) -m rory_eval.faults.load_campaign --load 2
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache demo-out eval-out

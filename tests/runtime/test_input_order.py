@@ -24,6 +24,7 @@ from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from runtime_fakes import FakeSubscription, deliver_live
@@ -202,7 +203,17 @@ def test_changes_come_back_in_the_order_first_applied_wherever_the_checkpoint_fe
     for entry in readings_first(logged):
         second.rt.router.from_shadow(protocol.Msg(2, 0, entry.recv_ns, entry.source_ns,
                                                   entry.seq, entry.topic, entry.data))
+    # The change C arrives now, while the node recovers: a request waits in its service's
+    # queue (the executor does not take it before release), and a direct change is refused
+    # rather than applied out of order with the replay.
+    held = [second.node.fast, node_lifecycle.change_state_service(second.node)]
+    executor = SingleThreadedExecutor(context=context)
+    assert not any(executor.can_execute(srv) for srv in held)
+    early = second.node.set_parameters_atomically([Parameter('gain', value=9.0)])
+    assert not early.successful
     second.rt.open_gates(next_segment=max(first.rt.segments.numbers(), default=0) + 1)
+    assert all(executor.can_execute(srv) for srv in held)
+    executor.shutdown()
     # The handover after release (tested in test_routing.py): /numbers is read live again.
     second.rt.router.switch('/numbers')
     _after_recovery(second, c)

@@ -34,8 +34,6 @@ from typing import Any, TypeVar
 from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParameters, SetParametersAtomically
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.clock import Clock
-from rclpy.clock_type import ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
@@ -85,6 +83,7 @@ from .protocol import (
     Status,
     SyncedStatus,
 )
+from .pulse import Pulse
 from .qos import offered_qos
 from .routing import Input, Router, Window
 from .state import CheckpointSpec, write_state
@@ -95,7 +94,6 @@ _logger = logging.getLogger('rory.runtime')
 T = TypeVar('T')
 
 DEFAULT_INTERVAL = 2.0
-BEAT_PERIOD = 0.2  # seconds between heartbeats (the supervisor's hang_timeout is far longer)
 SIM_CLOCK_WAIT = 5.0  # seconds a recovery under use_sim_time waits for /clock to judge ages
 
 
@@ -241,6 +239,10 @@ class NodeRuntime:
         self._final_taken = False
         self._closing = False
         self._started = False
+        # Callbacks run to their end (messages, ticks, requests, parameter changes, replayed or
+        # live): the pulse reads it to know the executor is alive without waking it.
+        self.progress = 0
+        self.pulse = Pulse(lambda: None, lambda: None, lambda: 0, lambda: 0)  # on_constructed
         # The segment being written and the checkpoints that cut the log (checkpointer.py).
         self.checkpointer = Checkpointer(
             spec, self.method, env.node_id, env.incarnation, self.lock, self.checkpoints,
@@ -351,15 +353,17 @@ class NodeRuntime:
         if self.method.logs:
             # Loading the typestore costs ~0.1 s; do it before the first message needs it.
             threading.Thread(target=default_typestore, daemon=True).start()
-        # The heartbeat: a timer on the node's own executor, on the steady clock (sim time may
-        # stand still; a stuck executor must still show). The supervisor kills a node whose
-        # beat stops for its hang_timeout, after SIGUSR1 has made this process print where
-        # every thread is (faulthandler), so the operator sees where it hung.
+        # The heartbeat and the checkpoint schedule: a side thread that posts to the node's
+        # executor only when it must (pulse.py), no timer in its wait set. The supervisor kills
+        # a node whose beat stops for its hang_timeout, after SIGUSR1 has made this process
+        # print where every thread is (faulthandler), so the operator sees where it hung.
         with contextlib.suppress(ValueError, RuntimeError, OSError):
             faulthandler.register(signal.SIGUSR1, all_threads=True)
         self.inflight.beat()
-        Node.create_timer(node, BEAT_PERIOD, self.inflight.beat, callback_group=self._group,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        clock = node.get_clock()
+        self.pulse = Pulse(lambda: node.executor, self.inflight.beat, lambda: self.progress,
+                           lambda: int(event_clock.original_now(clock).nanoseconds))
+        self.pulse.start()
         # The first callback the executor runs is this one, so restoring here happens before
         # any user callback (user timers are held and user messages buffered until release).
         self._startup_timer = Node.create_timer(
@@ -424,6 +428,7 @@ class NodeRuntime:
             finally:
                 if clock is not None:
                     clock.end()
+                self.progress += 1
 
     def _replayed_event(self, event_ns: int, readings: list[Reading],
                         run: Callable[[], T]) -> T:
@@ -437,6 +442,7 @@ class NodeRuntime:
                 return run()
             finally:
                 clock.end()
+                self.progress += 1
 
     def _replay_request(self, index: int, data: bytes, event_ns: int,
                         readings: list[Reading]) -> None:
@@ -709,6 +715,7 @@ class NodeRuntime:
             self.inflight.idle()
             self.windows[inp.topic].add(ident)
             self.stats['applied'] += 1
+            self.progress += 1
 
     def _log(self, inp: Input, raw: bytes, info: dict[str, Any], ident: MessageId) -> None:
         writer = self.checkpointer.segment()
@@ -756,7 +763,7 @@ class NodeRuntime:
             self.held_timers.clear()
             if self.method.checkpoints or self.method.logs:
                 tick = self.checkpoint_tick if self.method.checkpoints else self._rotate_tick
-                Node.create_timer(self.node, self.interval, tick, callback_group=self._group)
+                self.pulse.schedule_checkpoints(self.interval, tick)
         if self.method.checkpoints:
             # On the I/O thread: the first snapshot's copies land in memory already written.
             self.checkpointer.io.submit(
@@ -834,6 +841,7 @@ class NodeRuntime:
     def close(self) -> None:
         """Finish background I/O and seal the open segment, so a clean exit leaves complete
         bags; after a clean stop (SIGINT, SIGTERM), take a last checkpoint first."""
+        self.pulse.stop()
         self.checkpointer.io.drain()
         if (self.released and self.method.checkpoints and self.node is not None
                 and not self._callback_failed and not self._final_taken):

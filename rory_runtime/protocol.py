@@ -1,17 +1,17 @@
 """Everything the node-side runtime and the supervisor agree on, in one place.
 
 The two halves of RORY meet only here: environment variables the supervisor sets for a node it
-spawns, the names and QoS of the two topics between them, the status messages a node sends, and
-the binary envelopes the supervisor sends back.
+spawns, the status messages a node sends, the name and QoS of the topic the supervisor answers
+on, and the binary envelopes it sends there.
+
+Statuses go node -> supervisor as datagrams on the supervisor's status socket
+(status_socket.py, ``ENV_STATUS``), one JSON object each, not over DDS: nothing of RORY's in the
+node's executor or participant in steady state (docs/architecture.md).
 
 Topics (``<node>`` is the node's id from the supervisor configuration; ``/rory`` is the
 *channel*, the supervisor's namespace followed by ``rory``, so that two supervisors on one DDS
 network, e.g. one per robot under ``-r __ns:=/robot1``, never share a topic):
 
-``/rory/<node>/status``  node -> supervisor, ``std_msgs/msg/String`` holding one JSON object.
-    Reliable and transient-local, so a status published before the supervisor's reader matched
-    is still delivered (a restarted process is discovered late:
-    `python -m rory_eval.bench.discovery`).
 ``/rory/<node>/replay``  supervisor -> node, ``std_msgs/msg/UInt8MultiArray`` carrying an
     envelope. This is the node's *shadow topic*: recorded messages of every input topic travel
     on it, multiplexed, so that the node receives them in exactly the recorded order (DDS keeps
@@ -75,10 +75,12 @@ ENV_QUARANTINE: Final = 'RORY_QUARANTINE'  # JSON [[topic, source_ns, seq], ...]
 ENV_SECRET: Final = 'RORY_SECRET'  # hex
 # Where the node's two topics live: ``<supervisor namespace>/rory`` (see channel()).
 ENV_CHANNEL: Final = 'RORY_CHANNEL'
+# The supervisor's status socket (status_socket.py): statuses go to it, not over DDS.
+ENV_STATUS: Final = 'RORY_STATUS_SOCKET'
 DEFAULT_CHANNEL: Final = '/rory'
 
 # A node's id: its name in the supervisor config, its folder in the store (store.py, log.py)
-# and a part of its topics' names (/rory/<node>/status), so a letter, then letters, digits or
+# and a part of its topics' names (/rory/<node>/replay_1), so a letter, then letters, digits or
 # _ (what a ROS name allows, and no path). Always used with fullmatch.
 NODE_ID_RE: Final = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
 
@@ -170,11 +172,6 @@ def channel(namespace: str) -> str:
     return f'{namespace.rstrip("/")}{DEFAULT_CHANNEL}'
 
 
-def status_topic(node_id: str, channel: str = DEFAULT_CHANNEL) -> str:
-    """Topic a node's runtime reports on."""
-    return f'{channel}/{node_id}/status'
-
-
 def replay_topic(node_id: str, incarnation: int, channel: str = DEFAULT_CHANNEL) -> str:
     """The shadow topic of one process of a node.
 
@@ -185,13 +182,6 @@ def replay_topic(node_id: str, incarnation: int, channel: str = DEFAULT_CHANNEL)
     """
     return f'{channel}/{node_id}/replay_{incarnation}'
 
-
-STATUS_QOS: Final = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=64,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
 
 # Keep-all: a reliable writer then resends whatever a late-matching reader has not
 # acknowledged, and nothing is dropped however far the node falls behind.

@@ -5,8 +5,10 @@ runs").
 checkpoint snapshot runs under. It adopts the node's entities (``adopt_*``: publishers muted
 until release, timers and services held until release and their events logged), restores the
 newest valid checkpoint at start-up (``restore``), applies each message (``_apply``: written
-ahead to the log, then the user's callback, under the lock), answers the supervisor on the
-shadow topic and reports on the status topic (``_status``).
+ahead to the log, then the user's callback, under the lock), hears the supervisor on the
+shadow topic and reports to it on its status socket (``_status``, status_socket.py); its
+heartbeat and checkpoint schedule run on a side thread (pulse.py), nothing of RORY's in the
+node's executor in steady state.
 
 Where each input's messages come from, and when they are applied, is the router's
 (routing.py); checkpoints and the log segments they cut are the checkpointer's
@@ -34,7 +36,7 @@ from typing import Any, TypeVar
 from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParameters, SetParametersAtomically
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -43,7 +45,7 @@ from rclpy.serialization import deserialize_message
 from rclpy.service import Service
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
-from std_msgs.msg import String, UInt8MultiArray
+from std_msgs.msg import UInt8MultiArray
 
 from . import (
     codec,
@@ -53,6 +55,7 @@ from . import (
     node_parameters,
     node_services,
     protocol,
+    status_socket,
 )
 from .checkpointer import Checkpointer, node_clock_reading
 from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryError
@@ -70,6 +73,7 @@ from .protocol import (
     ENV_NODE,
     ENV_QUARANTINE,
     ENV_SECRET,
+    ENV_STATUS,
     ENV_STORE,
     ErrorStatus,
     HelloStatus,
@@ -97,14 +101,10 @@ DEFAULT_INTERVAL = 2.0
 SIM_CLOCK_WAIT = 5.0  # seconds a recovery under use_sim_time waits for /clock to judge ages
 
 
-# RORY's own status publisher and shadow subscription take no QoS event handlers: rclpy gives
-# each entity default ones (incompatible QoS and type warnings), every one a waitable that each
-# executor wait of the node's own callbacks must add and poll. Both ends are RORY's, with QoS
-# from protocol.py, so the warnings could only ever be about RORY itself.
-def _without_events_pub() -> PublisherEventCallbacks:
-    return PublisherEventCallbacks(use_default_callbacks=False)
-
-
+# RORY's own shadow subscription takes no QoS event handlers: rclpy gives each entity default
+# ones (incompatible QoS and type warnings), every one a waitable that each executor wait of the
+# node's own callbacks must add and poll. Both ends are RORY's, with QoS from protocol.py, so
+# the warnings could only ever be about RORY itself.
 def _without_events_sub() -> SubscriptionEventCallbacks:
     return SubscriptionEventCallbacks(use_default_callbacks=False)
 
@@ -123,6 +123,7 @@ class RuntimeEnv:
     secret: bytes | None = None  # the run's key: envelopes and statuses are signed with it
     channel: str = DEFAULT_CHANNEL  # the namespace of its two topics with the supervisor
     gated: bool = False  # a release gate: outputs stay muted after release until OPEN
+    status_socket: str | None = None  # the supervisor's (status_socket.py); None: statuses dropped
 
     @classmethod
     def from_environ(cls, environ: dict[str, str] | None = None) -> RuntimeEnv | None:
@@ -150,6 +151,8 @@ class RuntimeEnv:
                 secret=bytes.fromhex(env[ENV_SECRET]) if env.get(ENV_SECRET) else None,
                 channel=env.get(ENV_CHANNEL) or DEFAULT_CHANNEL,
                 gated=env.get(ENV_GATED) == '1',
+                status_socket=(status_socket.from_env(env[ENV_STATUS])
+                               if env.get(ENV_STATUS) else None),
             )
         except (KeyError, ValueError, TypeError) as err:
             raise RoryError(f'{ENV_NODE} is set but the environment is bad: {err}') from None
@@ -230,14 +233,15 @@ class NodeRuntime:
         self.segments = SegmentStore(env.store, env.node_id)
         self.reported_errors: set[str] = set()
         self._group: MutuallyExclusiveCallbackGroup | None = None
-        self._status_pub: Publisher | None = None
+        # Statuses go to the supervisor's socket, not over DDS (status_socket.py).
+        self._status_sender = (None if env.status_socket is None
+                               else status_socket.StatusSender(env.status_socket))
         self._startup_timer: Timer | None = None
         self._hello_sent = False
         # A user callback raised (the process is going down with it), or the exit-time
         # checkpoint is done: see close().
         self._callback_failed = False
         self._final_taken = False
-        self._closing = False
         self._started = False
         # Callbacks run to their end (messages, ticks, requests, parameter changes, replayed or
         # live): the pulse reads it to know the executor is alive without waking it.
@@ -346,10 +350,6 @@ class NodeRuntime:
             # Transitions from outside are requests like any service's: held, logged, replayed.
             self.adopt_service(change_state)
         self._group = MutuallyExclusiveCallbackGroup()
-        self._status_pub = Node.create_publisher(
-            node, String, protocol.status_topic(self.env.node_id, self.env.channel),
-            protocol.STATUS_QOS, event_callbacks=_without_events_pub(),
-        )
         if self.method.logs:
             # Loading the typestore costs ~0.1 s; do it before the first message needs it.
             threading.Thread(target=default_typestore, daemon=True).start()
@@ -815,16 +815,11 @@ class NodeRuntime:
     # -- reporting ----------------------------------------------------------------------------
 
     def _status(self, status: Status) -> None:
-        if self._status_pub is None:
+        if self._status_sender is None:
             return
-        text = protocol.encode_status(status, self.env.node_id, self.env.incarnation,
-                                      key=self.env.secret, sent_ns=time.time_ns())
-        if not self._closing:
-            self._status_pub.publish(String(data=text))
-            return
-        # At exit the context may be shut down already: the checkpoint is on disk regardless.
-        with contextlib.suppress(Exception):
-            self._status_pub.publish(String(data=text))
+        self._status_sender.send(protocol.encode_status(
+            status, self.env.node_id, self.env.incarnation, key=self.env.secret,
+            sent_ns=time.time_ns()))
 
     def _error(self, message: str) -> None:
         if message in self.reported_errors:
@@ -849,7 +844,6 @@ class NodeRuntime:
             # next run with --resume, `rory inspect` or `rory bundle` should find. After an
             # exception a callback may have been cut halfway: no checkpoint of that.
             self._final_taken = True
-            self._closing = True
             try:
                 persist = self.checkpointer.take(self.node, self.windows)
                 if persist is not None:
@@ -857,3 +851,5 @@ class NodeRuntime:
             except Exception as err:  # at exit nothing may propagate; the older one stays
                 _logger.error('[rory] no checkpoint at exit: %s: %s', type(err).__name__, err)
         self.checkpointer.close_segment()
+        if self._status_sender is not None:
+            self._status_sender.close()  # (the exit checkpoint's status with the rest)

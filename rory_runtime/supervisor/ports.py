@@ -5,8 +5,8 @@ gate) run in ``ManagedNode``, driven by three entry points on the main thread: `
 ``on_status`` and ``tick``; the heartbeat's in ``watchdog.Watchdog`` and the recovery steps in
 ``recovery.Recovery``, which it drives. Everything they reach outside themselves goes through
 this protocol: the clock, the heartbeat reader, the launcher, the event log, the safe state,
-the ring, and the few rclpy calls that make the node's status reader, shadow-topic writer and
-release service. The real :class:`~.supervisor.Supervisor` provides them;
+the ring, the status socket's address, and the few rclpy calls that make the node's shadow-topic
+writer and release service. The real :class:`~.supervisor.Supervisor` provides them;
 tests/supervisor/fake_supervisor.py provides fakes, so those decisions are unit-tested without
 a ROS process (tests/supervisor/test_managed_node.py, tests/supervisor/test_watchdog.py), as
 supervisord tests its process logic.
@@ -46,11 +46,6 @@ class SafetyPort(Protocol):
 
 class RosPort(Protocol):
     """The rclpy node calls a managed node makes on the supervisor's own node."""
-
-    def create_subscription(self, msg_type: Any, topic: str, callback: Any,
-                            qos_profile: Any) -> Any:
-        """The node's status reader."""
-        ...
 
     def create_publisher(self, msg_type: Any, topic: str, qos_profile: Any) -> Any:
         """A shadow-topic writer."""
@@ -113,6 +108,11 @@ class SupervisorPorts(Protocol):
         """This run's key: envelopes and statuses are signed with it."""
         ...
 
+    @property
+    def status_address(self) -> str:
+        """Where the nodes send their statuses (inbox.py), for their environment."""
+        ...
+
     def read_beat(self, slot: Path) -> int | None:
         """A node's last heartbeat on the clock's scale, in ns; None before its first."""
         ...
@@ -121,6 +121,6 @@ class SupervisorPorts(Protocol):
         """A ring for one node's inputs."""
         ...
 
-    def post_status(self, node_id: str, text: str) -> None:
-        """Queue a status message (from the status reader's thread)."""
+    def post_status(self, text: str) -> None:
+        """Queue a status message (from the inbox's thread)."""
         ...

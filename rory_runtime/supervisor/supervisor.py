@@ -31,7 +31,7 @@ import rclpy.utilities
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
-from std_msgs.msg import String, UInt8MultiArray
+from std_msgs.msg import UInt8MultiArray
 from std_srvs.srv import Trigger
 
 from .. import protocol
@@ -61,6 +61,7 @@ from ..threads import name_this_thread
 from .config import NodeConfig, SupervisorConfig, check_store, store_error
 from .diagnostics import NodeHealth, Reporter, age
 from .events import EventLog, RosoutHandler
+from .inbox import StatusInbox
 from .lineage import InputGap
 from .output import OutputPrefixer
 from .parameters import NODE_NAME as SUPERVISOR_NODE
@@ -225,12 +226,7 @@ class ManagedNode:
         # What the last recovery did with each key variable (freshness.py's verdict).
         self.last_freshness: Verdict | None = None
 
-        def on_status(msg: Any) -> None:
-            sup.post_status(cfg.name, str(msg.data))
-
-        sup.ros_node.create_subscription(
-            String, protocol.status_topic(cfg.name, sup.channel), on_status, protocol.STATUS_QOS
-        )
+        # Its statuses come on the supervisor's status socket (inbox.py), not over DDS.
         if cfg.release_gate is not None:
             sup.ros_node.create_service(Trigger, self.gate_service, self._gate_service_call)
 
@@ -270,6 +266,7 @@ class ManagedNode:
                 protocol.ENV_QUARANTINE: self.poison.env_value(),
                 protocol.ENV_SECRET: self.sup.secret.hex(),
                 protocol.ENV_CHANNEL: self.sup.channel,
+                protocol.ENV_STATUS: self.sup.status_address,
                 'PYTHONUNBUFFERED': '1',
             }
         )
@@ -982,6 +979,7 @@ class Supervisor:
         self.events: queue.Queue[Event] = queue.Queue()
         self.nodes: dict[str, ManagedNode] = {}
         self._ring_ctx: RingContext | None = None
+        self._inbox: StatusInbox | None = None
         self._stopping = False
         self.channel = protocol.DEFAULT_CHANNEL  # set from its node's namespace in run()
         self.clock: Callable[[], float] = time.monotonic
@@ -990,21 +988,26 @@ class Supervisor:
         """A node's last heartbeat (inflight.py), ``time.monotonic_ns()``; None before one."""
         return read_beat(slot)
 
+    @property
+    def status_address(self) -> str:
+        """Where the nodes send their statuses (inbox.py), as the environment spells it."""
+        assert self._inbox is not None, 'the inbox is made in run()'
+        return self._inbox.address
+
     # called from other threads
-    def post_status(self, node_id: str, text: str) -> None:
-        """Queue a status message for the main thread."""
+    def post_status(self, text: str) -> None:
+        """Queue a status message for the main thread (from the inbox's thread)."""
         try:
             message = protocol.decode_status(text, self.secret)
         except ProtocolError as err:
-            _logger.warning('%s %s: ignoring malformed status: %s', LOG_PREFIX, node_id, err)
+            _logger.warning('%s ignoring malformed status: %s', LOG_PREFIX, err)
             return
-        if message.node != node_id:
-            # Only this node's runtime publishes here; anything else is a misconfigured or
-            # foreign participant and must not steer this node's recovery.
-            _logger.warning('%s %s: ignoring a status that claims to be from %r', LOG_PREFIX,
-                            node_id, message.node)
+        if message.node not in self.nodes:
+            # Signed with this run's key but for no node of this config: not ours to act on.
+            _logger.warning('%s ignoring a status of an unknown node %r', LOG_PREFIX,
+                            message.node)
             return
-        self.events.put(StatusReceived(node_id, message))
+        self.events.put(StatusReceived(message.node, message))
 
     def make_ring(self, node_id: str) -> Ring:
         """A ring for one node (the shared ring executor is created on first use; its readers
@@ -1151,6 +1154,7 @@ class Supervisor:
         executor = SingleThreadedExecutor()
         spinner = threading.Thread(target=self._spin, args=(executor,), name='rory-ros')
         code = 1
+        self._inbox = StatusInbox(self.post_status)
         try:
             self.safety = SafeState(
                 self.ros_node, self.config,
@@ -1175,6 +1179,7 @@ class Supervisor:
             marker.release()
             if self._ring_ctx is not None:
                 self._ring_ctx.shutdown()
+            self._inbox.close()
             # Shut the context down first so the spinner leaves spin_once, then join it: an
             # executor thread still inside rcl at interpreter exit aborts the process.
             rclpy.utilities.try_shutdown()

@@ -20,8 +20,9 @@ from typing import Literal
 
 HELLO_TIMEOUT = 10.0
 """Seconds a new process may beat without its HELLO reaching the supervisor. Its runtime sends
-HELLO right after its first callback, so a beating node whose HELLO never arrives is one whose
-status writer the supervisor never discovered: only a new process (a new participant) helps."""
+HELLO right after its first callback, on the status socket (status_socket.py), so a beating
+node whose HELLO never arrives is one that cannot reach its supervisor: only a new process
+helps."""
 
 HANG_DUMP_GRACE = 0.3
 """Seconds between SIGUSR1 (a hung node prints its threads' stacks) and SIGKILL."""

@@ -1,10 +1,12 @@
-"""Another participant on the domain, without the run's key, cannot steer a node or its
-supervisor: forged envelopes on the shadow topic and forged status messages are refused."""
+"""Another participant on the domain, or another process on the computer, without the run's key,
+cannot steer a node or its supervisor: forged envelopes on the shadow topic and forged status
+messages on the supervisor's status socket are refused."""
 
 from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +16,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
-from std_msgs.msg import String, UInt8MultiArray
+from std_msgs.msg import UInt8MultiArray
 from supervision import events, wait_for
 
 from rory_eval.harness.scenario import prepare, scenario_env
@@ -23,8 +25,14 @@ from rory_runtime import protocol
 pytestmark = pytest.mark.ros
 
 
-
-
+def _status_socket(pid: int) -> str:
+    """The supervisor's status socket (abstract: ``@rory-status-<pid>-...`` in /proc/net/unix),
+    as any process on the computer can find it."""
+    for line in Path('/proc/net/unix').read_text().splitlines():
+        name = line.split()[-1]
+        if name.startswith(f'@rory-status-{pid}-'):
+            return '\0' + name[1:]
+    raise AssertionError(f'no status socket of {pid}')
 
 
 def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: int) -> None:
@@ -52,10 +60,7 @@ def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: i
         shadow = rogue.create_publisher(
             UInt8MultiArray, protocol.replay_topic('integrator', incarnation),
             protocol.REPLAY_QOS)
-        status = rogue.create_publisher(String, protocol.status_topic('integrator'),
-                                        protocol.STATUS_QOS)
-        wait_for(lambda: shadow.get_subscription_count() >= 1
-                  and status.get_subscription_count() >= 1, 20, 'the rogue publishers matched')
+        wait_for(lambda: shadow.get_subscription_count() >= 1, 20, 'the rogue publisher matched')
         # A message that was never published, pushed into the node as if replayed; and a
         # status that would end a recovery that is not happening.
         forged = protocol.pack_msg(incarnation, topic='/numbers', recv_ns=1, source_ns=1, seq=1,
@@ -65,8 +70,10 @@ def test_forged_envelopes_and_statuses_are_refused(tmp_path: Path, ros_domain: i
             applied=0, replayed=0, duplicates=0, muted=0, quarantined=0, passed_by_relay=0,
             ticks=0, ticks_replayed=0, clock_fallbacks=0, parameter_changes=0,
             parameter_changes_replayed=0, requests=0, requests_replayed=0)
-        status.publish(String(data=protocol.encode_status(
-            released, 'integrator', incarnation, key=bytes(32))))
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as status:
+            status.sendto(protocol.encode_status(released, 'integrator', incarnation,
+                                                 key=bytes(32)).encode(),
+                          _status_socket(sup.pid))
         wait_for(lambda: any(e['kind'] == 'error' and 'not signed' in e.get('message', '')
                               for e in events(store)), 20, "the node's refusal")
         wait_for(lambda: refusal in log.read_text(errors='replace'), 20,

@@ -54,7 +54,6 @@ from rory_runtime.protocol import (
     replay_topic,
     ring_depth,
     sign,
-    status_topic,
     unpack,
     window_size,
 )
@@ -624,14 +623,13 @@ def test_a_verdict_comes_back_as_it_went() -> None:
 
 
 def test_topic_names() -> None:
-    assert status_topic('integrator') == '/rory/integrator/status'
     assert replay_topic('integrator', 3) == '/rory/integrator/replay_3'
 
 
 def test_a_supervisor_in_a_namespace_has_its_own_channel() -> None:
     assert channel('/') == '/rory'
     assert channel('/robot1') == '/robot1/rory'
-    assert status_topic('amcl', channel('/fleet/robot2')) == '/fleet/robot2/rory/amcl/status'
+    assert replay_topic('amcl', 2, channel('/fleet/robot2')) == '/fleet/robot2/rory/amcl/replay_2'
     assert replay_topic('amcl', 1, channel('/robot1')) == '/robot1/rory/amcl/replay_1'
 
 

@@ -44,7 +44,7 @@ class _RecordingRclpy:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._real, name)
 
-    def WaitSet(self, *args: Any) -> Any:  # noqa: N802 (rclpy's name)
+    def WaitSet(self, *args: Any) -> Any:
         self.shapes.append(tuple(args[:6]))  # type: ignore[arg-type]
         return self._real.WaitSet(*args)
 

@@ -240,6 +240,7 @@ class FakeSupervisor:
         self.ros_node = FakeRosNode()
         self.channel = protocol.DEFAULT_CHANNEL
         self.secret = b'k' * 32
+        self.status_address = '@rory-status-fake'
         self.beats: dict[Path, int] = {}
         self.rings: list[FakeRing] = []
 
@@ -251,7 +252,7 @@ class FakeSupervisor:
         self.rings.append(ring)
         return ring  # type: ignore[return-value]
 
-    def post_status(self, node_id: str, text: str) -> None:
+    def post_status(self, text: str) -> None:
         pass
 
 

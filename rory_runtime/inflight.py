@@ -6,10 +6,10 @@ memory store, no system call, and it survives the process being killed (the page
 the file). After a crash the supervisor reads the slot: the message the node died applying is a
 suspect; dying on the same message twice makes it a poison message (see supervisor/poison.py).
 
-The same page carries the node's heartbeat: a timer on the node's executor writes
-``CLOCK_MONOTONIC`` (system-wide, so the supervisor can compare) a few times a second. A node
-whose executor is stuck - in a callback that never returns, a deadlock, a busy loop - stops
-beating, and the supervisor treats it as crashed. Reading it is a file read: no DDS, so a
+The same page carries the node's heartbeat: the runtime's side thread (pulse.py) writes
+``CLOCK_MONOTONIC`` (system-wide, so the supervisor can compare) a few times a second while the
+node's executor shows it runs. A node whose executor is stuck - in a callback that never
+returns, a deadlock, a busy loop - stops beating, and the supervisor treats it as crashed. Reading it is a file read: no DDS, so a
 loaded network cannot fake a hang.
 
 Layout (little endian, 256 bytes)::
@@ -86,7 +86,7 @@ class InFlightSlot:
         self._map[:8] = _HEAD.pack(_MAGIC, _VERSION, 0, 0, 0, 0, 0, 0)[:8]
 
     def beat(self) -> None:
-        """The executor is alive (called from a timer on it)."""
+        """The executor is alive (pulse.py decides when)."""
         _BEAT.pack_into(self._map, _BEAT_AT, time.monotonic_ns())
 
     def close(self) -> None:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shlex
 import shutil
@@ -74,6 +75,9 @@ class Row:
     rory_own_cpu: float
     cpu_ratio: float
     pss_added: float
+    # The node's own processes under RORY against the bare run (issue 36's figure): median of
+    # each pair's (rory_cpu - rory_own_cpu) / bare_cpu; NaN in sittings from before it.
+    node_ratio: float = float('nan')
 
 
 class TableIIError(Exception):
@@ -90,24 +94,30 @@ def row(program: str, pairs: Sequence[Pair], failed: int = 0) -> Row:
                median(p.rory_cpu for p in pairs), median(p.rory_pss for p in pairs),
                median(p.rory_own_cpu for p in pairs),
                median(p.rory_cpu / p.bare_cpu for p in pairs),
-               median(p.rory_pss - p.bare_pss for p in pairs))
+               median(p.rory_pss - p.bare_pss for p in pairs),
+               median((p.rory_cpu - p.rory_own_cpu) / p.bare_cpu for p in pairs))
 
 
 def table(rows: Sequence[Row]) -> str:
     """Markdown, one line per program, the stack last."""
     lines = ['| program | pairs | original CPU | original PSS | RORY CPU | RORY PSS '
-             '| of which RORY\'s processes |',
-             '|---|---:|---:|---:|---:|---:|---:|']
+             '| of which RORY\'s processes | the node\'s own process(es) against bare |',
+             '|---|---:|---:|---:|---:|---:|---:|---:|']
     for r in sorted(rows, key=lambda r: (r.program == STACK, _order(r.program))):
         name = 'the six, one supervisor' if r.program == STACK else r.program
         pairs = f'{r.pairs}' + (f' ({r.failed} failed)' if r.failed else '')
         if not r.pairs:
-            lines.append(f'| {name} | {pairs} | - | - | - | - | - |')
+            lines.append(f'| {name} | {pairs} | - | - | - | - | - | - |')
             continue
         lines.append(f'| {name} | {pairs} | {r.bare_cpu:.1f}% | {r.bare_pss:.0f} MB '
                      f'| {r.rory_cpu:.1f}% ({r.cpu_ratio:.2f}x) '
-                     f'| {r.rory_pss:.0f} MB ({r.pss_added:+.0f} MB) | {r.rory_own_cpu:.1f}% |')
+                     f'| {r.rory_pss:.0f} MB ({r.pss_added:+.0f} MB) | {r.rory_own_cpu:.1f}% '
+                     f'| {_ratio(r.node_ratio)} |')
     return '\n'.join(lines)
+
+
+def _ratio(value: float) -> str:
+    return '-' if math.isnan(value) else f'{value:.2f}x'
 
 
 def _order(program: str) -> int:

@@ -28,12 +28,14 @@ def test_ratio_and_added_memory_are_medians_of_each_pair() -> None:
     assert r.cpu_ratio == pytest.approx(1.2)
     assert r.pss_added == pytest.approx(50.0)
     assert r.rory_own_cpu == 1.5
+    # The node's own process: (12 - 1.5) / 10, (22 - 1) / 20, (13.2 - 2) / 11.
+    assert r.node_ratio == pytest.approx(1.05)
 
 
 def test_a_program_with_no_pair_has_no_figures() -> None:
     r = row('amcl', [], failed=3)
     assert r.pairs == 0 and r.failed == 3 and math.isnan(r.cpu_ratio)
-    assert '| amcl | 0 (3 failed) | - | - | - | - | - |' in table([r])
+    assert '| amcl | 0 (3 failed) | - | - | - | - | - | - |' in table([r])
 
 
 def test_the_table_lists_targets_in_their_order_and_the_stack_last() -> None:
@@ -44,7 +46,7 @@ def test_the_table_lists_targets_in_their_order_and_the_stack_last() -> None:
     assert lines[2].startswith('| grid_slam | 1 | 10.0% | 58 MB | 11.0% (1.10x) | 100 MB (+42 MB)')
     assert lines[3].startswith('| lama_local |')
     assert lines[4] == ('| the six, one supervisor | 1 | 60.0% | 400 MB | 63.0% (1.05x) '
-                        '| 450 MB (+50 MB) | 2.0% |')
+                        '| 450 MB (+50 MB) | 2.0% | 1.02x |')
 
 
 def sitting(*programs: str) -> dict[str, Any]:

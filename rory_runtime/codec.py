@@ -76,6 +76,7 @@ import functools
 import math
 import random
 import re
+import struct
 import sys
 import threading
 import types
@@ -86,6 +87,7 @@ from typing import Any, Final, Generic
 import msgpack
 import numpy as np
 
+from rory_runtime import chunks
 from rory_runtime.errors import CodecError
 from rory_runtime.msgtypes import (
     TYPE_NAME_RE,
@@ -201,8 +203,10 @@ class Snapshot:
         self._arrays = arrays
 
 
-_Spares = dict[tuple[str, tuple[int, ...]], list[np.ndarray[Any, np.dtype[Any]]]]
-"""Spare buffers by (dtype string, shape)."""
+_Spare = tuple[np.ndarray[Any, np.dtype[Any]], chunks.Digests | None]
+"""A buffer and the digests of its chunks (None: not tracked)."""
+_Spares = dict[tuple[str, str, tuple[int, ...]], list[_Spare]]
+"""Spare buffers by (variable path, dtype string, shape)."""
 
 
 class ArrayPool:
@@ -216,26 +220,33 @@ class ArrayPool:
     each large array's buffer of the last packed snapshot to the next one makes that the case
     from the second checkpoint on. The pool holds one snapshot's large arrays at most (what
     the last :meth:`refill` gave it), so arrays that change shape or go away are let go.
-    Buffers are matched by dtype and shape only.
+    Buffers are matched by the variable's path, dtype and shape.
+
+    With ``chunk_bytes``, a buffer also carries the digests of its chunks (chunks.py), and the
+    next snapshot of the same variable copies only the chunks that differ
+    (:func:`chunks.copy_changed`): the chunks it finds equal keep their digest, so that only
+    the changed ones are hashed and written.
 
     Thread use: :meth:`take` on the thread that takes snapshots, :meth:`refill` and
     :meth:`prime` on the one that packs them; those build a new dict and swap it in whole. A buffer
     is only ever given to a new snapshot after the snapshot that had it was packed.
+
+    Args:
+        chunk_bytes: The chunk size whose digests buffers carry; 0: none.
     """
 
     MIN_BYTES = 1 << 16
     """Arrays below this are copied into new memory: their faults cost next to nothing."""
 
-    def __init__(self) -> None:
+    def __init__(self, chunk_bytes: int = 0) -> None:
+        self.chunk_bytes = chunk_bytes
         self._spare: _Spares = {}
 
-    def take(self, dtype: str, shape: tuple[int, ...]) -> np.ndarray[Any, np.dtype[Any]] | None:
-        """A spare C-order buffer of that dtype and shape, or None.
-
-        Which variable it held last does not matter: the copy overwrites all of it.
-        """
+    def take(self, key: str, dtype: str, shape: tuple[int, ...]) -> _Spare | None:
+        """A spare C-order buffer of that variable path, dtype and shape with its digests, or
+        None."""
         # Only this thread pops; a refill builds new lists and swaps the dict whole.
-        spares = self._spare.get((dtype, shape))
+        spares = self._spare.get((key, dtype, shape))
         return spares.pop() if spares else None
 
     def prime(self, values: Mapping[str, object]) -> None:
@@ -248,24 +259,28 @@ class ArrayPool:
         if self._spare:
             return
         spare: _Spares = {}
-        for value in list(values.values()):
+        for name, value in list(values.items()):
             if (type(value) is np.ndarray and value.dtype.kind in _NUMERIC_KINDS
                     and value.nbytes >= self.MIN_BYTES):
                 buffer = np.empty(value.shape, dtype=value.dtype)
                 buffer.fill(0)
-                spare.setdefault((value.dtype.str, value.shape), []).append(buffer)
+                # The key a snapshot looks for: the variable's path (_path_str of its root).
+                key = (repr(name), value.dtype.str, value.shape)
+                spare.setdefault(key, []).append((buffer, None))
         if not self._spare:
             self._spare = spare
 
     def refill(self, snapshot: Snapshot) -> None:
         """Keep a packed snapshot's large arrays for the next one; the snapshot is done with.
 
-        Call only after :func:`pack_snapshot` returned (or gave up) on it.
+        Call only after the snapshot's bytes are no longer used: packed by
+        :func:`pack_snapshot`, or the pieces of :func:`pack_pieces` written (or given up).
         """
         spare: _Spares = {}
         for array in snapshot._arrays:
             if array.data.nbytes >= self.MIN_BYTES:
-                spare.setdefault((array.dtype, array.data.shape), []).append(array.data)
+                key = (array.key, array.dtype, array.data.shape)
+                spare.setdefault(key, []).append((array.data, array.digests))
         self._spare = spare
         snapshot._arrays = []
 
@@ -317,6 +332,74 @@ def pack_snapshot(snapshot: Snapshot) -> bytes:
     return _pack_checked(snapshot._lowered, 'checkpoint variables')
 
 
+def pack_pieces(snapshot: Snapshot) -> list[chunks.Piece]:
+    """The bytes of :func:`pack_snapshot` as pieces, the large arrays not copied: packed bytes,
+    and each large array's bytes in its snapshot buffer (:class:`chunks.Tracked`, with what
+    is known of its chunks). Joined, they are ``pack_snapshot(snapshot)``, byte for byte.
+
+    The buffers stay the snapshot's until :meth:`ArrayPool.refill` takes them back.
+
+    Raises:
+        CodecError: As :func:`pack_snapshot`, or an array too large for msgpack.
+    """
+    packer = msgpack.Packer(default=_pack_default, use_bin_type=True, strict_types=True,
+                            unicode_errors=_UNICODE_ERRORS, autoreset=False)
+    pieces: list[chunks.Piece] = []
+    try:
+        packer.pack_map_header(len(snapshot._lowered))
+        for name, value in snapshot._lowered.items():
+            packer.pack(name)
+            _pack_walk(value, packer, pieces)
+    except (ValueError, TypeError, OverflowError) as err:
+        raise CodecError(f'checkpoint variables: cannot encode: {err}') from None
+    pieces.append(packer.bytes())
+    return pieces
+
+
+def _pack_walk(value: object, packer: msgpack.Packer, pieces: list[chunks.Piece]) -> None:
+    """Pack ``value`` into ``packer``, a large array as a piece of its own. Only containers
+    lowering marked as holding deferred arrays are walked; the rest msgpack packs whole."""
+    kind = type(value)
+    if kind is _DeferredArray:
+        assert isinstance(value, _DeferredArray)
+        if value.data.nbytes < ArrayPool.MIN_BYTES:
+            packer.pack(value)  # small: inline, through _pack_default
+            return
+        pieces.append(packer.bytes())
+        packer.reset()
+        pieces.append(_ndarray_head(value.dtype, value.shape, value.data.nbytes))
+        data = value.data.data.cast('B')
+        step = chunks.CHUNK_BYTES if value.digests is None else value.chunk_bytes
+        if value.digests is None:
+            value.digests = [None] * chunks.chunk_count(data.nbytes, step)
+        pieces.append(chunks.Tracked(data, value.digests, step))
+    elif kind is _ListWithArrays:
+        assert isinstance(value, list)
+        packer.pack_array_header(len(value))
+        for item in value:
+            _pack_walk(item, packer, pieces)
+    elif kind is _DictWithArrays:
+        assert isinstance(value, dict)
+        packer.pack_map_header(len(value))
+        for key, item in value.items():
+            packer.pack(key)
+            _pack_walk(item, packer, pieces)
+    else:
+        packer.pack(value)
+
+
+def _ndarray_head(dtype: str, shape: list[int], nbytes: int) -> bytes:
+    """The bytes :func:`_pack_default` writes for an array of ``nbytes`` >= 64 KiB
+    (ArrayPool.MIN_BYTES) before its data: the extension header (ext 32, code EXT_NDARRAY)
+    and its payload's start, ``[dtype, shape,`` and the data's bin 32 header."""
+    payload = b'\x93' + _pack_payload(dtype) + _pack_payload(shape) + b'\xc6'
+    length = len(payload) + 4 + nbytes
+    if nbytes < 1 << 16 or length >= 1 << 32:
+        msg = f'a numpy array of {nbytes} bytes does not fit msgpack\'s bin 32'
+        raise ValueError(msg)
+    return b'\xc9' + struct.pack('>Ib', length, EXT_NDARRAY) + payload + struct.pack('>I', nbytes)
+
+
 def _lower_root(value: object, root: str) -> object:
     try:
         return _lower(value, (root,))
@@ -362,20 +445,43 @@ def _ext(code: int, payload: bytes) -> msgpack.ExtType:
 
 
 class _DeferredArray:
-    """An ndarray in a snapshot: a private C-order copy whose payload is packed later."""
+    """An ndarray in a snapshot: a private C-order copy whose payload is packed later.
 
-    __slots__ = ('data', 'dtype', 'shape')
+    A large one is keyed by its variable path, so that its buffer goes to the same variable's
+    next snapshot, and with a chunking pool carries the digests of its chunks (ArrayPool).
+    """
 
-    def __init__(self, array: np.ndarray[Any, np.dtype[Any]], pool: ArrayPool | None) -> None:
+    __slots__ = ('chunk_bytes', 'data', 'digests', 'dtype', 'key', 'shape')
+
+    def __init__(
+        self, array: np.ndarray[Any, np.dtype[Any]], pool: ArrayPool | None, path: _Path
+    ) -> None:
         self.dtype = array.dtype.str
         self.shape = list(array.shape)
-        buffer = None
+        self.key = ''
+        self.digests: chunks.Digests | None = None
+        self.chunk_bytes = 0
+        spare = None
         if pool is not None and array.nbytes >= ArrayPool.MIN_BYTES:
-            buffer = pool.take(self.dtype, array.shape)
+            self.key = _path_str(path)
+            spare = pool.take(self.key, self.dtype, array.shape)
+        buffer, known = spare if spare is not None else (None, None)
         if buffer is None:
             buffer = np.empty(array.shape, dtype=array.dtype)  # C order
-        np.copyto(buffer, array, casting='no')
+        if pool is not None and pool.chunk_bytes and array.nbytes >= ArrayPool.MIN_BYTES:
+            self.chunk_bytes = pool.chunk_bytes
+            self.digests = chunks.copy_changed(buffer, array, known, pool.chunk_bytes)
+        else:
+            np.copyto(buffer, array, casting='no')
         self.data = buffer
+
+
+class _ListWithArrays(list[object]):
+    """A lowered list holding deferred arrays (in a snapshot): :func:`pack_pieces` walks it."""
+
+
+class _DictWithArrays(dict[object, object]):
+    """A lowered dict holding deferred arrays (in a snapshot): :func:`pack_pieces` walks it."""
 
 
 def _pack_payload(obj: object) -> bytes:
@@ -395,6 +501,10 @@ def _pack_default(obj: object) -> object:
     handled everything else."""
     if type(obj) is _DeferredArray:
         return _ext(EXT_NDARRAY, _pack_payload([obj.dtype, obj.shape, obj.data.tobytes()]))
+    if type(obj) is _ListWithArrays:
+        return list(obj)
+    if type(obj) is _DictWithArrays:
+        return dict(obj)
     if type(obj) is int:
         length = (obj.bit_length() + 8) // 8  # room for the sign bit
         return _ext(EXT_BIGINT, obj.to_bytes(length, 'big', signed=True))
@@ -481,10 +591,19 @@ def _loaded_class(module: str, name: str) -> object:
 
 def _lower_items(items: Iterable[object], path: _Path) -> list[object]:
     out = list(items)
+    deferred = _deferred_count()
     for index, item in enumerate(out):
         if type(item) not in _NATIVE:
             out[index] = _lower(item, (path, _AT_INDEX, index))
+    if _deferred_count() > deferred:
+        return _ListWithArrays(out)
     return out
+
+
+def _deferred_count() -> int:
+    """How many arrays the snapshot being taken has deferred so far (-1: none is)."""
+    deferred: list[_DeferredArray] | None = getattr(_local, 'deferred', None)
+    return -1 if deferred is None else len(deferred)
 
 
 def _lower_members(members: set[object] | frozenset[object], path: _Path) -> list[object]:
@@ -497,6 +616,7 @@ def _lower_members(members: set[object] | frozenset[object], path: _Path) -> lis
 
 def _lower_dict(mapping: dict[object, object], path: _Path) -> dict[object, object]:
     out: dict[object, object] = {}
+    deferred = _deferred_count()
     for index, (key, item) in enumerate(mapping.items()):
         lowered_key = key if type(key) in _NATIVE else _lower(key, (path, _AT_KEY, index))
         if type(item) not in _NATIVE:
@@ -505,6 +625,8 @@ def _lower_dict(mapping: dict[object, object], path: _Path) -> dict[object, obje
     if len(out) != len(mapping):
         # Distinct Python keys that encode alike would silently merge on decode.
         raise _refuse(path, 'a dict two of whose keys have the same encoding')
+    if _deferred_count() > deferred:
+        return _DictWithArrays(out)
     return out
 
 
@@ -523,7 +645,7 @@ def _lower_ndarray(
     if dtype.kind not in _NUMERIC_KINDS:
         raise _refuse(path, f'a numpy array of dtype {dtype} (only bool and numeric dtypes)')
     if getattr(_local, 'defer_arrays', False):
-        deferred = _DeferredArray(array, _local.pool)
+        deferred = _DeferredArray(array, _local.pool, path)
         _local.deferred.append(deferred)
         return deferred
     # tobytes() gives C order for any layout, so non-contiguous input needs no special case.

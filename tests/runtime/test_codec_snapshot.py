@@ -1,4 +1,5 @@
-"""snapshot_vars + pack_snapshot: encode_vars split in two, the same bytes, a true snapshot."""
+"""snapshot_vars + pack_snapshot (or pack_pieces): encode_vars split in two, the same bytes, a
+true snapshot."""
 
 from __future__ import annotations
 
@@ -11,7 +12,15 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import Point
 
-from rory_runtime.codec import ArrayPool, decode_vars, encode_vars, pack_snapshot, snapshot_vars
+from rory_runtime import chunks
+from rory_runtime.codec import (
+    ArrayPool,
+    decode_vars,
+    encode_vars,
+    pack_pieces,
+    pack_snapshot,
+    snapshot_vars,
+)
 from rory_runtime.errors import CodecError
 
 
@@ -134,3 +143,56 @@ def test_prime_writes_buffers_for_large_top_level_arrays_only_into_an_empty_pool
     pool.refill(snapshot)
     pool.prime({'a': BIG, 'b': BIG})  # not empty: left as it is
     assert len(pool) == 1
+
+
+# -- pack_pieces: the same bytes, large arrays by reference, their unchanged chunks known ----
+
+
+def _joined(pieces: list[chunks.Piece]) -> bytes:
+    return b''.join(p if isinstance(p, bytes) else p.data for p in pieces)
+
+
+BIG_CORPUS: list[dict[str, object]] = [
+    *CORPUS,
+    {'grid': BIG, 'small': SMALL, 'levels': [BIG, BIG.T, 3], 'by_name': {'a': {'b': BIG}}},
+    {'in_tuple': (BIG,), 'in_dataclass': _Cell((0.0, 1.0), BIG), 'big_endian': BIG.astype('>f8'),
+     'odd': np.arange(100_003, dtype=np.uint8), 'empty': np.zeros((0, 70_000), np.uint8)},
+]
+
+
+@pytest.mark.parametrize('values', BIG_CORPUS)
+@pytest.mark.parametrize('chunk_bytes', [0, 4096])
+def test_pieces_joined_are_the_encode_vars_bytes(values: dict[str, object],
+                                                 chunk_bytes: int) -> None:
+    pool = ArrayPool(chunk_bytes)
+    for _ in range(2):  # the second time into the first one's buffers
+        snapshot = snapshot_vars(values, pool)
+        pieces = pack_pieces(snapshot)
+        assert _joined(pieces) == encode_vars(values)
+        pool.refill(snapshot)
+
+
+def test_large_arrays_in_lists_and_dicts_are_pieces_by_reference() -> None:
+    values: dict[str, object] = {'levels': [BIG, BIG * 2], 'named': {'a': BIG}, 'grid': BIG,
+                                 'in_tuple': (BIG,), 'small': SMALL}
+    snapshot = snapshot_vars(values, ArrayPool(4096))
+    tracked = [p for p in pack_pieces(snapshot) if isinstance(p, chunks.Tracked)]
+    assert len(tracked) == 4  # a tuple packs its items at the snapshot: inline
+    assert all(p.data.nbytes == BIG.nbytes and p.chunk_bytes == 4096 for p in tracked)
+    assert all(p.digests == [None] * (BIG.nbytes // 4096) for p in tracked)
+
+
+def test_the_next_snapshot_keeps_the_digests_of_unchanged_chunks() -> None:
+    pool = ArrayPool(4096)
+    a, b = BIG.copy(), BIG.copy()  # same dtype and shape: each keeps its own buffer
+    values: dict[str, object] = {'a': a, 'levels': [b]}
+    first = snapshot_vars(values, pool)
+    pieces = pack_pieces(first)
+    chunks.Chunker(4096, inline_max=0).split(pieces)  # hashes every chunk
+    pool.refill(first)
+    a[10, 10] += 1.0  # chunk 2 of a (rows of 1 kB, 4 rows a chunk)
+    second = snapshot_vars(values, pool)
+    tracked = [p for p in pack_pieces(second) if isinstance(p, chunks.Tracked)]
+    assert [i for i, d in enumerate(tracked[0].digests) if d is None] == [2]
+    assert None not in tracked[1].digests
+    assert _joined(pack_pieces(second)) == encode_vars(values)

@@ -1,25 +1,38 @@
 """Durable checkpoint files of one node.
 
-Layout: ``<root>/<node>/checkpoints/<seq:010d>.ckpt``, directories mode 0700, files 0600.
+Layout: ``<root>/<node>/checkpoints/<seq:010d>.ckpt``, and ``chunks.dat`` beside them when
+a checkpoint's variables are large (chunk_file.py); directories mode 0700, files 0600.
 
 File format, all integers little endian::
 
     offset  size  field
     0       8     magic b'RORYCKPT'
-    8       2     u16 format version (1)
+    8       2     u16 format version: 1, the variables in the file; 2, in parts
     10      4     u32 header length H
     14      H     header: msgpack map of every Checkpoint field except vars_blob (and
                   parameters, lifecycle, clock_ns with sim_time, and freshness when empty
                   or 0), plus
-                  'vars_len' (the length of vars_blob)
-    14+H    V     vars_blob, opaque here (codec.encode_vars output)
+                  'vars_len' (the length of vars_blob), and in version 2
+                  'parts': the parts vars_blob is made of, in order, each either
+                      n (an int): the next n bytes of the inline bytes below, or
+                      [offset, length, SHA-256 (bin 32)]: a chunk in chunks.dat
+    14+H    V     version 1: vars_blob, opaque here (codec.encode_vars output);
+                  version 2: the inline bytes, V the sum of the int parts
     14+H+V  32    SHA-256 over all bytes before it
+
+Version 1 is written when the variables are small (chunks.INLINE_MAX): the file holds all.
+Larger ones are cut into chunks (chunks.py) and each chunk is stored once in chunks.dat, so
+a checkpoint writes only the chunks no kept checkpoint holds yet.
 
 A file is written to a temporary name in the same directory, flushed and fsynced, renamed
 into place and the directory fsynced, so a final ``.ckpt`` name only ever holds a complete
-file. A checkpoint that was nevertheless damaged later (disk, a hand edit) is caught by the
-checksum and refused with :class:`CheckpointError`, and the caller falls back to an older
-one. The store is meant for one writing process per node; it is not thread-safe.
+file; the chunks it names are durable before that. A checkpoint that was nevertheless damaged
+later (disk, a hand edit) is caught by its checksum, or a chunk's, and refused with
+:class:`CheckpointError` naming the ``.ckpt`` file, and the caller falls back to an older
+one. A chunk no kept checkpoint names any more is garbage: its room is reused. So are those
+named by the copies of a checkpoint the supervisor keeps beside a quarantined message
+(``<node>/quarantine/*/checkpoints/*.ckpt``, supervisor/poison.py), which name the chunks in
+this folder. The store is meant for one writing process per node; it is not thread-safe.
 """
 
 from __future__ import annotations
@@ -28,29 +41,36 @@ import hashlib
 import os
 import re
 import struct
-import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import suppress
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Final
 
 import msgpack
 
+from rory_runtime import chunk_file, chunks
+from rory_runtime.chunk_file import Ref
 from rory_runtime.errors import CheckpointError
 from rory_runtime.fsutil import fsync_dir, make_private_dir
 from rory_runtime.protocol import NODE_ID_RE
 
 MAGIC: Final = b'RORYCKPT'
 FORMAT_VERSION: Final = 1
+"""The version whose file holds the variables whole."""
+CHUNKED_VERSION: Final = 2
+"""The version whose variables are parts: inline bytes and chunks in chunks.dat."""
 
 _PREFIX: Final = struct.Struct('<8sHI')
 _DIGEST_LEN: Final = 32
 _MIN_LEN: Final = _PREFIX.size + _DIGEST_LEN
+_CKPT_SUFFIX: Final = '.ckpt'
 _NAME_RE: Final = re.compile(r'([0-9]{10})\.ckpt')
 _TMP_SUFFIX: Final = '.tmp'
 _U64: Final = 2**64
 _MAX_SEQ: Final = 10**10 - 1  # file names hold ten digits
+_QUARANTINE: Final = 'quarantine'  # supervisor/poison.py keeps checkpoint copies in it
+_StatKey = tuple[int, int, int]
 
 
 @dataclass(frozen=True)
@@ -120,6 +140,9 @@ class CheckpointStore:
         self.node = node
         self.keep = keep
         self.dir = self.root / node / 'checkpoints'
+        # The chunks each checkpoint file names, by the file's identity: files never change
+        # once renamed into place, so only a new file is read (on the writing thread).
+        self._refs: dict[Path, tuple[_StatKey, list[Ref]]] = {}
 
     def path(self, seq: int) -> Path:
         """Return the final file name of checkpoint seq."""
@@ -143,12 +166,18 @@ class CheckpointStore:
         """
         return max(self._seqs(), default=0) + 1
 
-    def write(self, ckpt: Checkpoint) -> Path:
+    def write(self, ckpt: Checkpoint, *, parts: Sequence[chunks.Part] | None = None) -> Path:
         """Write a checkpoint atomically, then drop all but the newest ``keep``.
+
+        Its variables go inline into the file when they are small, else as chunks into
+        chunks.dat, only those no checkpoint on disk holds yet (durable before the file is
+        renamed into place); the chunks only dropped checkpoints named become free room.
 
         Args:
             ckpt: The checkpoint; its node must be this store's and its seq above every
                 seq on disk.
+            parts: Its variables as ``chunks.Chunker.split`` made them, instead of
+                ``ckpt.vars_blob`` (then empty). Chunk data must stay valid until this returns.
 
         Returns:
             The final path.
@@ -161,18 +190,38 @@ class CheckpointStore:
         if ckpt.node != self.node:
             msg = f'checkpoint of node {ckpt.node!r} in the store of {self.node!r}'
             raise CheckpointError(final, msg)
-        data = serialize(ckpt, final)
-        newest = max(self._seqs(), default=0)
+        if parts is not None and ckpt.vars_blob:
+            msg = 'cannot write checkpoint: its variables given twice (vars_blob and parts)'
+            raise CheckpointError(final, msg)
+        _check_fields(ckpt, final)
+        if parts is None:
+            parts = chunks.split_blob(ckpt.vars_blob)
+        inline = all(isinstance(part, bytes) for part in parts)
+        if inline:
+            whole = ckpt if len(parts) == 1 and parts[0] is ckpt.vars_blob else replace(
+                ckpt, vars_blob=b''.join(part for part in parts if isinstance(part, bytes)))
+            data = serialize(whole, final)
+        names = self._names()
+        seqs = _seqs_in(names)
+        newest = max(seqs, default=0)
         if ckpt.seq <= newest:
             msg = f'seq {ckpt.seq} is not above the newest checkpoint on disk ({newest})'
             raise CheckpointError(final, msg)
+        roots: dict[Path, list[Ref]] | None = None
         try:
             make_private_dir(self.dir)
-            self._remove_stale_temps()
-            self._write_atomic(final, data)
+            self._remove_stale_temps(names)
+            if not inline:
+                roots = self._roots(seqs)
+                refs = chunk_file.place(self.dir, parts, _all_refs(roots))
+                data = _serialize_chunked(ckpt, parts, refs, final)
+            written = self._write_atomic(final, data)
         except OSError as err:
             raise CheckpointError(final, f'cannot write: {err}') from None
-        self._prune()
+        if roots is not None:
+            roots[final] = refs
+            self._refs[final] = (written, refs)
+        self._prune([*seqs, ckpt.seq], roots)
         return final
 
     def load(
@@ -201,7 +250,7 @@ class CheckpointStore:
             data = Path(path).read_bytes()
         except OSError as err:
             raise CheckpointError(path, f'cannot read: {err.strerror or err}') from None
-        ckpt = deserialize(data, path)
+        ckpt = deserialize(data, path, chunks_at=self.chunk_file_of(Path(path)))
         if expect_node is not None and ckpt.node != expect_node:
             msg = f'checkpoint of node {ckpt.node!r}, expected {expect_node!r}'
             raise CheckpointError(path, msg)
@@ -237,6 +286,20 @@ class CheckpointStore:
                     on_refused(err)
         return None
 
+    def chunk_file_of(self, path: Path) -> Path:
+        """The chunk file whose chunks the checkpoint file ``path`` names: the one beside it,
+        else this store's (a copy kept under quarantine names this store's chunks)."""
+        beside = Path(path).parent / chunk_file.NAME
+        return beside if beside.exists() else self.dir / chunk_file.NAME
+
+    def chunk_bytes(self, path: Path) -> int:
+        """How many bytes of the checkpoint file ``path``'s variables are in chunks (0 for one
+        that holds them whole, or that cannot be read)."""
+        try:
+            return sum(ref.length for ref in _parse(Path(path).read_bytes(), path).refs)
+        except (OSError, CheckpointError):
+            return 0
+
     def quarantine(self, path: Path) -> Path:
         """Set a refused checkpoint aside (``<name>.refused``) so it no longer counts as one of
         the ``keep`` newest, and a later recovery does not try it again. Returns the new path.
@@ -248,52 +311,108 @@ class CheckpointStore:
         return target
 
     def _seqs(self) -> list[int]:
+        return _seqs_in(self._names())
+
+    def _names(self) -> list[str]:
         try:
-            names = os.listdir(self.dir)
+            return os.listdir(self.dir)
         except FileNotFoundError:
             return []
         except OSError as err:
             raise CheckpointError(self.dir, f'cannot list: {err.strerror or err}') from None
-        return [int(match[1]) for name in names if (match := _NAME_RE.fullmatch(name))]
 
-    def _write_atomic(self, final: Path, data: bytes) -> None:
-        # mkstemp creates the file with mode 0600 and a name no other writer can collide with.
-        fd, tmp_name = tempfile.mkstemp(
-            dir=self.dir, prefix=f'.{final.name}.{os.getpid()}.', suffix=_TMP_SUFFIX
-        )
-        tmp = Path(tmp_name)
+    def _write_atomic(self, final: Path, data: bytes) -> _StatKey:
+        """Write ``final`` through a temporary file; the identity of the file written."""
+        tmp = self.dir / f'.{final.name}.{os.getpid()}.{os.urandom(4).hex()}{_TMP_SUFFIX}'
+        # O_EXCL: a name no other writer holds; mode 0600 (a umask only takes bits away).
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
         try:
-            with os.fdopen(fd, 'wb') as stream:
-                stream.write(data)
-                stream.flush()
-                os.fsync(stream.fileno())
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(fd, view):]
+                os.fsync(fd)
+                written = _stat_key(os.fstat(fd))  # a rename changes none of it
+            finally:
+                os.close(fd)
             os.replace(tmp, final)
         except BaseException:
             with suppress(OSError):
                 tmp.unlink()
             raise
         fsync_dir(self.dir)
+        return written
 
-    def _remove_stale_temps(self) -> None:
+    def _remove_stale_temps(self, names: list[str]) -> None:
         """Delete temporary files of writers that died before renaming them."""
-        for entry in os.scandir(self.dir):
-            if entry.name.startswith('.') and entry.name.endswith(_TMP_SUFFIX):
-                pid = _temp_pid(entry.name)
+        for name in names:
+            if name.startswith('.') and name.endswith(_TMP_SUFFIX):
+                pid = _temp_pid(name)
                 # Our own pid cannot have a write in flight here (single writer), so a temp
                 # file with it is from an earlier incarnation that got the same pid.
                 if pid is None or pid == os.getpid() or not _pid_alive(pid):
                     with suppress(FileNotFoundError):
-                        os.unlink(entry.path)
+                        os.unlink(self.dir / name)
 
-    def _prune(self) -> None:
-        for path in self.paths()[self.keep :]:
+    def _prune(self, seqs: list[int], roots: dict[Path, list[Ref]] | None) -> None:
+        """Drop all but the newest ``keep`` of the checkpoints ``seqs``, then the chunks no
+        checkpoint on disk names any more. ``roots``: what :meth:`_roots` found before this
+        write, and the checkpoint it wrote (None: not known)."""
+        for path in [self.path(seq) for seq in sorted(seqs, reverse=True)[self.keep :]]:
             # A checkpoint that cannot be deleted only costs disk space; never fail a write.
             with suppress(OSError):
                 path.unlink()
+                if roots is not None:
+                    roots.pop(path, None)
+        if roots is None:
+            if not (self.dir / chunk_file.NAME).exists():
+                return  # no chunks: nothing more to drop
+            roots = self._roots()
+        if roots is not None:
+            with suppress(OSError):
+                chunk_file.collect(self.dir, [ref for refs in roots.values() for ref in refs])
+
+    def _roots(self, seqs: list[int] | None = None) -> dict[Path, list[Ref]] | None:
+        """The chunks each checkpoint on disk names: the files here (``seqs``, else listed)
+        and the copies kept under quarantine. None when one of them cannot be read (then
+        none is known)."""
+        files = [self.path(seq) for seq in (self._seqs() if seqs is None else seqs)]
+        files += self._quarantined()
+        roots: dict[Path, list[Ref]] = {}
+        cache: dict[Path, tuple[_StatKey, list[Ref]]] = {}
+        for path in files:
+            try:
+                key = _stat_key(path.stat())
+                cached = self._refs.get(path)
+                if cached is not None and cached[0] == key:
+                    refs = cached[1]
+                else:
+                    refs = _refs_of(path.read_bytes(), path)
+            except FileNotFoundError:
+                continue  # gone since the listing: names nothing
+            except OSError:
+                return None
+            cache[path] = (key, refs)
+            roots[path] = refs
+        self._refs = cache
+        return roots
+
+    def _quarantined(self) -> list[Path]:
+        """The checkpoint copies kept beside quarantined messages (supervisor/poison.py)."""
+        found: list[Path] = []
+        try:
+            folders = list(os.scandir(self.root / self.node / _QUARANTINE))
+        except OSError:
+            return found  # none yet, the common case
+        for folder in folders:
+            with suppress(OSError):
+                copies = os.scandir(Path(folder.path) / 'checkpoints')
+                found += (Path(e.path) for e in copies if e.name.endswith(_CKPT_SUFFIX))
+        return sorted(found)
 
 
 def serialize(ckpt: Checkpoint, path: Path | str = '<memory>') -> bytes:
-    """Return the file bytes of a checkpoint.
+    """Return the file bytes of a checkpoint holding its variables whole (format version 1).
 
     Args:
         ckpt: The checkpoint.
@@ -307,7 +426,35 @@ def serialize(ckpt: Checkpoint, path: Path | str = '<memory>') -> bytes:
 
     """
     _check_fields(ckpt, path)
-    header = {
+    return _frame(FORMAT_VERSION, _header(ckpt, len(ckpt.vars_blob)), [ckpt.vars_blob])
+
+
+def _serialize_chunked(
+    ckpt: Checkpoint, parts: Sequence[chunks.Part], refs: Sequence[Ref], path: Path | str
+) -> bytes:
+    """The file bytes of a checkpoint whose variables are ``parts`` (format version 2), its
+    chunks at ``refs`` (one per chunk, in order)."""
+    _check_fields(ckpt, path)
+    entries: list[object] = []
+    inline: list[bytes] = []
+    placed = iter(refs)
+    vars_len = 0
+    for part in parts:
+        if isinstance(part, bytes):
+            entries.append(len(part))
+            inline.append(part)
+            vars_len += len(part)
+        else:
+            ref = next(placed)
+            entries.append([ref.offset, ref.length, ref.digest])
+            vars_len += ref.length
+    header = _header(ckpt, vars_len)
+    header['parts'] = entries
+    return _frame(CHUNKED_VERSION, header, inline)
+
+
+def _header(ckpt: Checkpoint, vars_len: int) -> dict[str, object]:
+    header: dict[str, object] = {
         'node': ckpt.node,
         'seq': ckpt.seq,
         'incarnation': ckpt.incarnation,
@@ -316,7 +463,7 @@ def serialize(ckpt: Checkpoint, path: Path | str = '<memory>') -> bytes:
         'method': ckpt.method,
         'cut': ckpt.cut,
         'windows': {topic: [list(ident) for ident in ids] for topic, ids in ckpt.windows.items()},
-        'vars_len': len(ckpt.vars_blob),
+        'vars_len': vars_len,
     }
     if ckpt.parameters:
         header['parameters'] = ckpt.parameters
@@ -327,25 +474,63 @@ def serialize(ckpt: Checkpoint, path: Path | str = '<memory>') -> bytes:
         header['sim_time'] = ckpt.sim_time
     if ckpt.freshness:
         header['freshness'] = [list(rule) for rule in ckpt.freshness]
+    return header
+
+
+def _frame(version: int, header: dict[str, object], body: Sequence[bytes]) -> bytes:
     packed: bytes = msgpack.packb(header, use_bin_type=True)
-    body = b''.join((_PREFIX.pack(MAGIC, FORMAT_VERSION, len(packed)), packed, ckpt.vars_blob))
-    return body + hashlib.sha256(body).digest()
+    data = b''.join((_PREFIX.pack(MAGIC, version, len(packed)), packed, *body))
+    return data + hashlib.sha256(data).digest()
 
 
-def deserialize(data: bytes, path: Path | str = '<memory>') -> Checkpoint:
+def deserialize(
+    data: bytes, path: Path | str = '<memory>', *, chunks_at: Path | None = None
+) -> Checkpoint:
     """Parse and verify the bytes of a checkpoint file.
 
     Args:
         data: The file contents.
         path: Named in errors.
+        chunks_at: The chunk file its chunks are in, if it names any.
 
     Returns:
         The checkpoint.
 
     Raises:
-        CheckpointError: The bytes are truncated, corrupt or malformed.
+        CheckpointError: The bytes are truncated, corrupt or malformed, or a chunk they name
+            is missing or corrupt.
 
     """
+    parsed = _parse(data, path)
+    refs = parsed.refs
+    if refs and chunks_at is None:
+        raise CheckpointError(path, 'its variables are in chunks, and no chunk file was given')
+    found = iter(chunk_file.read(chunks_at, refs, Path(path)) if chunks_at is not None else [])
+    pieces: list[bytes | memoryview] = []
+    offset = 0
+    for entry in parsed.parts:
+        if isinstance(entry, int):
+            pieces.append(parsed.inline[offset : offset + entry])
+            offset += entry
+        else:
+            pieces.append(next(found))
+    return _checkpoint_from_header(parsed.header, b''.join(pieces), path)
+
+
+@dataclass(frozen=True)
+class _Parsed:
+    """A checkpoint file, verified, its chunks not read."""
+
+    header: dict[str, object]
+    inline: memoryview
+    parts: list[int | Ref]  # version 1: one int, the whole of inline
+
+    @property
+    def refs(self) -> list[Ref]:
+        return [entry for entry in self.parts if isinstance(entry, Ref)]
+
+
+def _parse(data: bytes, path: Path | str) -> _Parsed:
     if len(data) < _MIN_LEN:
         msg = f'truncated: {len(data)} bytes, a checkpoint has at least {_MIN_LEN}'
         raise CheckpointError(path, msg)
@@ -357,18 +542,62 @@ def deserialize(data: bytes, path: Path | str = '<memory>') -> Checkpoint:
     body = memoryview(data)[:-_DIGEST_LEN]
     if hashlib.sha256(body).digest() != data[-_DIGEST_LEN:]:
         raise CheckpointError(path, 'checksum mismatch: the file is corrupt or truncated')
-    if version != FORMAT_VERSION:
-        msg = f'unsupported format version {version}, this reader supports {FORMAT_VERSION}'
+    if version not in (FORMAT_VERSION, CHUNKED_VERSION):
+        msg = (f'unsupported format version {version}, this reader supports '
+               f'{FORMAT_VERSION} and {CHUNKED_VERSION}')
         raise CheckpointError(path, msg)
     vars_start = _PREFIX.size + header_len
     if vars_start > len(body):
         raise CheckpointError(path, f'malformed: header length {header_len} exceeds the file')
     header = _unpack_header(bytes(body[_PREFIX.size : vars_start]), path)
-    vars_blob = bytes(body[vars_start:])
-    if header.get('vars_len') != len(vars_blob):
-        msg = f'malformed header: vars_len {header.get("vars_len")!r}, file holds {len(vars_blob)}'
+    inline = body[vars_start:]
+    parts: list[int | Ref] = [len(inline)]
+    if version == CHUNKED_VERSION:
+        parts = _field_parts(header, len(inline), path)
+    vars_len = sum(entry if isinstance(entry, int) else entry.length for entry in parts)
+    if header.get('vars_len') != vars_len:
+        msg = f'malformed header: vars_len {header.get("vars_len")!r}, file holds {vars_len}'
         raise CheckpointError(path, msg)
-    return _checkpoint_from_header(header, vars_blob, path)
+    return _Parsed(header, inline, parts)
+
+
+def _seqs_in(names: list[str]) -> list[int]:
+    return [int(match[1]) for name in names if (match := _NAME_RE.fullmatch(name))]
+
+
+def _all_refs(roots: dict[Path, list[Ref]] | None) -> list[Ref] | None:
+    return None if roots is None else [ref for refs in roots.values() for ref in refs]
+
+
+def _refs_of(data: bytes, path: Path) -> list[Ref]:
+    """The chunks a checkpoint file names; none when it is corrupt (it is refused whole)."""
+    try:
+        return _parse(data, path).refs
+    except CheckpointError:
+        return []
+
+
+def _field_parts(header: dict[str, object], inline_len: int, path: Path | str) -> list[int | Ref]:
+    value = header.get('parts', _MISSING)
+    expected = 'a list of inline lengths and [offset, length, sha256]'
+    if type(value) is not list:
+        raise _bad_field(path, "'parts'", expected, value)
+    parts: list[int | Ref] = []
+    inline = 0
+    for entry in value:
+        if type(entry) is int and entry >= 0:
+            parts.append(entry)
+            inline += entry
+        elif (type(entry) is list and len(entry) == 3
+              and all(type(n) is int and 0 <= n < _U64 for n in entry[:2])
+              and type(entry[2]) is bytes and len(entry[2]) == chunks.DIGEST_BYTES):
+            parts.append(Ref(entry[0], entry[1], entry[2]))
+        else:
+            raise _bad_field(path, "'parts'", expected, entry)
+    if inline != inline_len:
+        msg = f'malformed header: parts name {inline} inline bytes, the file holds {inline_len}'
+        raise CheckpointError(path, msg)
+    return parts
 
 
 def _unpack_header(raw: bytes, path: Path | str) -> dict[str, object]:
@@ -545,3 +774,7 @@ def _pid_alive(pid: int) -> bool:
     except PermissionError:
         return True  # exists, owned by someone else
     return True
+
+
+def _stat_key(info: os.stat_result) -> _StatKey:
+    return (info.st_ino, info.st_size, info.st_mtime_ns)

@@ -338,8 +338,9 @@ def test_not_a_checkpoint(store: CheckpointStore, tmp_path: Path) -> None:
 
 def test_unsupported_version(store: CheckpointStore, tmp_path: Path) -> None:
     path = tmp_path / 'x.ckpt'
-    path.write_bytes(frame(header_of(make_ckpt(1, vars_blob=b'')), version=2))
-    assert refusal(store, path).reason == 'unsupported format version 2, this reader supports 1'
+    path.write_bytes(frame(header_of(make_ckpt(1, vars_blob=b'')), version=3))
+    assert refusal(store, path).reason == ('unsupported format version 3, this reader supports 1'
+                                           ' and 2')
 
 
 def test_manifest_mismatch(store: CheckpointStore) -> None:

@@ -2,11 +2,12 @@
 
 A checkpoint is taken under the runtime's lock, in one step, so that it falls between two
 callbacks: the key variables are copied (arrays into the buffers of the last packed checkpoint,
-:class:`codec.ArrayPool`), the segment being written is detached (the *cut*: the highest segment
-number whose messages the snapshot includes) and the per-topic windows of applied identities
-are copied. The rest runs in order on the ``rory-io`` thread (:class:`IoWorker`): close the
-detached segment, pack, write the checkpoint atomically, then prune the segments the older
-checkpoint kept no longer needs.
+:class:`codec.ArrayPool`, only the chunks that changed), the segment being written is detached
+(the *cut*: the highest segment number whose messages the snapshot includes) and the per-topic
+windows of applied identities are copied. The rest runs in order on the ``rory-io`` thread
+(:class:`IoWorker`): close the detached segment, pack (large arrays by reference), hash the
+changed chunks (chunks.py), write the checkpoint atomically with the chunks no kept checkpoint
+holds yet, then prune the segments the older checkpoint kept no longer needs.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Protocol
 
 from rclpy.node import Node
 
-from . import codec, event_clock, freshness, node_lifecycle, node_parameters
+from . import chunks, codec, event_clock, freshness, node_lifecycle, node_parameters
 from .errors import CheckpointError, CodecError, LogError
 from .log import SegmentStore, SegmentWriter
 from .protocol import CheckpointStatus, Method, Status
@@ -110,8 +111,10 @@ class Checkpointer:
         self.previous_cut: int | None = None
         self._next_seq = 0  # set at start-up from the store (number_from_store)
         self.io = IoWorker()
-        # The buffers of the last packed checkpoint's large arrays, for the next snapshot.
-        self.array_pool = codec.ArrayPool()
+        # The buffers of the last written checkpoint's large arrays, for the next snapshot,
+        # with the digests of their chunks: the next snapshot copies the changed ones only.
+        self.array_pool = codec.ArrayPool(chunks.CHUNK_BYTES)
+        self.chunker = chunks.Chunker()  # used on the I/O thread only
 
     def number_from_store(self) -> None:
         """Number the next checkpoint after the newest one on disk (at start-up)."""
@@ -173,7 +176,8 @@ class Checkpointer:
         with self.lock:
             # The snapshot: the only part that needs the node paused between two callbacks.
             # Arrays are copied here and packed by the I/O thread, so a 16 MB grid costs the
-            # executor one memcpy, not the several copies packing makes.
+            # executor one pass over it (compared with the last snapshot's buffer, the changed
+            # chunks copied), not the several copies packing makes.
             try:
                 snapshot = codec.snapshot_vars(read_state(self.spec, node), self.array_pool)
             except CodecError as err:
@@ -192,13 +196,6 @@ class Checkpointer:
         def persist() -> None:
             if writer is not None:
                 writer.close()
-            try:
-                blob = codec.pack_snapshot(snapshot)
-            except CodecError as err:
-                self._error(f'checkpoint {seq} not written: {err}')
-                return
-            finally:
-                self.array_pool.refill(snapshot)
             ckpt = Checkpoint(
                 node=self.node_id,
                 seq=seq,
@@ -208,7 +205,7 @@ class Checkpointer:
                 method=self.method.value,
                 cut=cut,
                 windows=window_copy,
-                vars_blob=blob,
+                vars_blob=b'',  # the variables go to the store as parts
                 parameters=parameters,
                 lifecycle=lifecycle,
                 clock_ns=max(taken_on.ns, 0),
@@ -216,17 +213,21 @@ class Checkpointer:
                 freshness=tuple((r.key, r.max_age, r.on_stale) for r in self.spec.freshness),
             )
             try:
-                self.checkpoints.write(ckpt)
-            except (OSError, CheckpointError) as err:
-                self._error(f'checkpoint {ckpt.seq} not written: {err}')
+                parts = self.chunker.split(codec.pack_pieces(snapshot))
+                self.checkpoints.write(ckpt, parts=parts)
+            except (CodecError, OSError, CheckpointError) as err:
+                self._error(f'checkpoint {seq} not written: {err}')
                 return
+            finally:
+                # Only now: the chunks written were views of the snapshot's buffers.
+                self.array_pool.refill(snapshot)
             # The older checkpoint kept needs the segments after its cut; older ones go.
             if self.method.logs and prune_through is not None:
                 self.segments.drop_through(prune_through)
             self._status(CheckpointStatus(
-                seq=ckpt.seq,
+                seq=seq,
                 cut=cut,
-                size=len(blob),
+                size=chunks.size_of(parts),
                 stall_ms=stall_ms,
                 total_ms=(time.perf_counter() - began) * 1000.0,
             ))

@@ -18,7 +18,7 @@ from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 from rclpy.parameter import Parameter
 
-from rory_runtime import codec
+from rory_runtime import chunk_file, chunks, codec
 from rory_runtime.protocol import Method, Mode
 from rory_runtime.runtime import NodeRuntime, RuntimeEnv
 from rory_runtime.state import CheckpointSpec
@@ -79,6 +79,40 @@ def test_each_checkpoint_holds_its_instant_while_buffers_pass_from_one_to_the_ne
             assert values['grid'][tick, tick] == float(tick)
             assert (values['grid'] == -1.0).sum() == tick - 1  # earlier ticks' changes only
             node.grid[tick, tick] = -1.0
+    finally:
+        rt.close()
+
+
+def test_a_checkpoint_writes_only_the_chunks_its_snapshot_found_changed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    written: list[int] = []
+    real = chunk_file._pwrite_all
+
+    def count(fd: int, data: bytes | memoryview, offset: int) -> None:
+        written.append(len(data))
+        real(fd, data, offset)
+
+    monkeypatch.setattr(chunk_file, '_pwrite_all', count)
+    env = RuntimeEnv(node_id='n', store=tmp_path, incarnation=1, method=Method.CHECKPOINT,
+                     mode=Mode.FRESH, interval=2.0)
+    rt = NodeRuntime(CheckpointSpec(('grid', 'ticks'), 'sha256:0'), env)
+    node = _Node()
+    node.grid = np.zeros((1024, 256), dtype=np.float32)  # 1 MiB: 8 chunks (all equal)
+    rt.node = node  # type: ignore[assignment]
+    rt.checkpointer.number_from_store()
+    rows = chunks.CHUNK_BYTES // (256 * 4)
+    try:
+        for tick in range(4):
+            written.clear()
+            node.grid[tick * rows, 0] = float(tick + 1)  # a chunk of its own each time
+            rt.checkpoint_tick()
+            _wait_for_io(rt)
+            latest = rt.checkpoints.latest_valid()
+            assert latest is not None and latest.seq == tick + 1
+            assert codec.decode_vars(latest.vars_blob)['grid'].tobytes() == node.grid.tobytes()
+            # The first writes the changed chunk and the zeros once; then the changed one.
+            assert written == [chunks.CHUNK_BYTES] * (2 if tick == 0 else 1)
     finally:
         rt.close()
 

@@ -42,7 +42,7 @@ import yaml
 from .errors import CheckpointError, ConfigError, LogError, RoryError
 from .log import SegmentStore, read_segment
 from .protocol import NODE_ID_RE
-from .store import Checkpoint, CheckpointStore
+from .store import Checkpoint, CheckpointStore, serialize
 from .supervisor.poison import EVIDENCE_SUFFIX
 
 FORMAT = 1
@@ -131,7 +131,10 @@ def make_bundle(store: Path, node: str, out: Path, config: Path | None = None) -
                                else a for a in command[1:]]
     out.parent.mkdir(parents=True, exist_ok=True)
     with tarfile.open(out, 'w') as tar:
-        tar.add(ckpt_path, f'store/{node}/checkpoints/{ckpt.seq:010d}.ckpt')
+        # Written whole (format version 1), whether or not the store keeps its variables in
+        # chunks: the bundle's store needs no chunk file.
+        _add_bytes(tar, f'store/{node}/checkpoints/{ckpt.seq:010d}.ckpt', serialize(ckpt),
+                   int(ckpt_path.stat().st_mtime))
         for n in after:
             tar.add(segment_paths[n], f'store/{node}/log/{n:010d}')
         quarantine = store / node / 'quarantine'
@@ -145,11 +148,14 @@ def make_bundle(store: Path, node: str, out: Path, config: Path | None = None) -
         for name, text in ((MANIFEST, json.dumps(manifest, indent=1)),
                            ('events.jsonl', ''.join(json.dumps(e) + '\n' for e in events)),
                            ('report.txt', _report(node, events))):
-            data = text.encode()
-            info = tarfile.TarInfo(name)
-            info.size, info.mtime, info.mode = len(data), int(time.time()), 0o600
-            tar.addfile(info, io.BytesIO(data))
+            _add_bytes(tar, name, text.encode(), int(time.time()))
     return manifest
+
+
+def _add_bytes(tar: tarfile.TarFile, name: str, data: bytes, mtime: int) -> None:
+    info = tarfile.TarInfo(name)
+    info.size, info.mtime, info.mode = len(data), mtime, 0o600
+    tar.addfile(info, io.BytesIO(data))
 
 
 Death = tuple[str, tuple[int, int]]  # (topic, (source_ns, seq)) of the message it died on

@@ -4,12 +4,12 @@
     rory inspect .rory --node mapper --checkpoint latest # the variables of one checkpoint
 
 A store is what ``rory supervise`` writes (``store:`` in its config): per node a
-``checkpoints/`` folder of ``<seq>.ckpt`` files and a ``log/`` folder of numbered rosbag2 MCAP
-segments, plus ``events.jsonl``. The listing verifies every checkpoint as a restore would
-(checksum, format, node) and says why one is refused. Variables are decoded as a restore
-would decode them; a value whose class (a dataclass or Enum of the node's code) is not
-importable here is shown by its stored fields instead, so nothing of the node is imported or
-run to inspect its state.
+``checkpoints/`` folder of ``<seq>.ckpt`` files (and ``chunks.dat``, the chunks of large ones)
+and a ``log/`` folder of numbered rosbag2 MCAP segments, plus ``events.jsonl``. The listing
+verifies every checkpoint as a restore would (checksum, format, node, chunks) and says why one
+is refused. Variables are decoded as a restore would decode them; a value whose class (a
+dataclass or Enum of the node's code) is not importable here is shown by its stored fields
+instead, so nothing of the node is imported or run to inspect its state.
 """
 
 from __future__ import annotations
@@ -57,6 +57,7 @@ class CheckpointInfo:
     size: int
     checkpoint: Checkpoint | None
     refused: str  # why it would not be restored ('' when valid)
+    chunked: int = 0  # bytes of its variables in the chunk file (store.py), not in the file
 
 
 def nodes_in(store: Path) -> list[str]:
@@ -82,7 +83,7 @@ def checkpoints_of(store: Path, node: str) -> list[CheckpointInfo]:
         except CheckpointError as err:
             ckpt, refused = None, str(err)
         found.append(CheckpointInfo(path, path.stat().st_size if path.exists() else 0, ckpt,
-                                    refused))
+                                    refused, checkpoints.chunk_bytes(path)))
     return found
 
 
@@ -303,7 +304,8 @@ def listing(store: Path, out: TextIO, only: str | None = None) -> None:
                 print(f'    {info.path.name}: {_size(info.size)}, REFUSED: {info.refused}',
                       file=out)
                 continue
-            print(f'    seq {ckpt.seq}: {_when(ckpt.created_ns)}, {_size(info.size)}, '
+            chunked = f' + {_size(info.chunked)} in chunks' if info.chunked else ''
+            print(f'    seq {ckpt.seq}: {_when(ckpt.created_ns)}, {_size(info.size)}{chunked}, '
                   f'incarnation {ckpt.incarnation}, method {ckpt.method}, cut {ckpt.cut}, '
                   f'manifest {ckpt.manifest}', file=out)
             try:

@@ -144,3 +144,22 @@ def test_a_reader_that_stops_early_gets_no_traceback(store: Path) -> None:
     proc.stdout.close()
     assert proc.wait(timeout=30) == 0
     assert proc.stderr.read() == b''
+
+
+def test_a_checkpoint_in_chunks_is_listed_and_shown_like_any_other(tmp_path: Path) -> None:
+    root = tmp_path / '.rory'
+    grid = np.zeros((1024, 256), dtype=np.float32)  # 1 MiB: kept in chunks
+    grid[5, 5] = 2.0
+    CheckpointStore(root, NODE).write(_checkpoint(1, {'grid': grid, 'scans': 3}))
+    assert (root / NODE / 'checkpoints' / 'chunks.dat').exists()
+    code, text = _run(str(root))
+    assert code == 0
+    assert 'seq 1:' in text and ' + 1.0 MB in chunks' in text
+    assert 'grid: ndarray float32 (1024, 256)' in text and 'scans: int' in text
+    code, text = _run(str(root), '--node', NODE, '--checkpoint', 'latest')
+    assert code == 0
+    assert 'grid = ndarray float32 shape (1024, 256), min 0 max 2' in text
+    assert 'scans = 3' in text
+    (root / NODE / 'checkpoints' / 'chunks.dat').unlink()
+    code, text = _run(str(root))
+    assert 'REFUSED' in text and 'missing chunks: cannot open the chunk file' in text

@@ -125,26 +125,35 @@ def _raise(message: str) -> None:
     raise RuntimeError(message)
 
 
-def new_checkpoint(checkpointer: Checkpointer, node: _Node) -> Callable[[], None]:
+Run = Callable[[], float]
+"""Takes one checkpoint; returns the CPU ms of its part under the lock."""
+
+
+def new_checkpoint(checkpointer: Checkpointer, node: _Node) -> Run:
     """One checkpoint as the runtime takes it: the snapshot, then the I/O thread's job."""
 
-    def run() -> None:
+    def run() -> float:
+        began = time.process_time()
         persist = checkpointer.take(node, {})  # type: ignore[arg-type]
+        locked = time.process_time() - began
         assert persist is not None
         persist()
+        return locked * 1000.0
 
     return run
 
 
-def old_checkpoint(folder: Path, node: _Node) -> Callable[[], None]:
+def old_checkpoint(folder: Path, node: _Node) -> Run:
     """One checkpoint as it was before chunks: a whole version 1 file."""
     pool = codec.ArrayPool()  # no chunks: plain copies into the last buffers
     directory = folder / 'grid_slam' / 'checkpoints'
     make_private_dir(directory)
     seqs = iter(range(1, 10**9))
 
-    def run() -> None:
+    def run() -> float:
+        began = time.process_time()
         snapshot = codec.snapshot_vars(read_state(SPEC, node), pool)
+        locked = time.process_time() - began
         blob = codec.pack_snapshot(snapshot)
         pool.refill(snapshot)
         seq = next(seqs)
@@ -159,22 +168,24 @@ def old_checkpoint(folder: Path, node: _Node) -> Callable[[], None]:
         os.replace(temp, final)
         fsync_dir(directory)
         (directory / f'{seq - 2:010d}.ckpt').unlink(missing_ok=True)  # keep two
+        return locked * 1000.0
 
     return run
 
 
-def measure(run: Callable[[], None], changes: Callable[[], None], count: int) -> list[float]:
-    """CPU ms of each of ``count`` checkpoints, ``changes`` made before each."""
+def measure(run: Run, changes: Callable[[], None], count: int) -> tuple[list[float], list[float]]:
+    """CPU ms of each of ``count`` checkpoints, ``changes`` made before each, and of their
+    part under the lock."""
     run()
     changes()
     run()
-    times = []
+    times, locked = [], []
     for _ in range(count):
         changes()
         began = time.process_time()
-        run()
+        locked.append(run())
         times.append((time.process_time() - began) * 1000.0)
-    return times
+    return times, locked
 
 
 def main() -> int:
@@ -193,11 +204,12 @@ def main() -> int:
     patterns: list[float | None] = [*args.changed, *([None] if args.room else [])]
     header = ['path', *(f'{p:g} % changed' if p is not None else 'a room' for p in patterns)]
     lines = ['| ' + ' | '.join(header) + ' |', '|---' + '|---:' * len(patterns) + '|']
+    locked_lines = list(lines)
     configs: list[tuple[str, int]] = [] if args.no_old else [('old', chunks.CHUNK_BYTES)]
     configs += [(f'chunks of {kib} KiB', kib * 1024) for kib in args.chunk_kib]
     try:
         for label, chunk_bytes in configs:
-            cells = []
+            cells, locked_cells = [], []
             for i, percent in enumerate(patterns):
                 folder = base / f'{label.replace(" ", "_")}-{i}'
                 node = _Node(seed=i)
@@ -220,19 +232,23 @@ def main() -> int:
                                                                                 chunk_bytes)
                     run = (old_checkpoint(folder, node) if checkpointer is None
                            else new_checkpoint(checkpointer, node))
-                    times = measure(run, changes, args.checkpoints)
+                    times, locked = measure(run, changes, args.checkpoints)
                 finally:
                     chunk_file.SLOT_BYTES = slot  # type: ignore[misc]
                     if checkpointer is not None:
                         checkpointer.io.drain()  # its idle I/O thread
                 shutil.rmtree(folder, ignore_errors=True)
                 cells.append(f'{statistics.median(times):.2f} ({min(times):.2f}-{max(times):.2f})')
+                locked_cells.append(f'{statistics.median(locked):.2f}')
             lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
+            locked_lines.append(f'| {label} | ' + ' | '.join(locked_cells) + ' |')
     finally:
         shutil.rmtree(base, ignore_errors=True)
     print(f'CPU ms per checkpoint of {sum(n * n * 4 for n in CELLS) / 2**20:.2f} MiB, median '
           f'(min-max) of {args.checkpoints}')
     print('\n'.join(lines))
+    print('\nOf which under the lock (the snapshot), median:')
+    print('\n'.join(locked_lines))
     return 0
 
 

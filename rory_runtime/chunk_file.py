@@ -40,10 +40,6 @@ class Ref:
     length: int
     digest: bytes
 
-    @property
-    def end(self) -> int:
-        return self.offset + self.length
-
 
 def place(directory: Path, parts: Sequence[chunks.Part], live: Iterable[Ref] | None) -> list[Ref]:
     """Write the chunks among ``parts`` that the file does not hold yet, durably.

@@ -72,13 +72,17 @@ discovery: $(STAMP)
 # fast replay, SIGKILLed at random times, against its no-crash run (~10 min); then on five real
 # targets x three worlds in the simulator (~30 min); then all four parts again, fewer runs, with
 # two busy processes per core beside them and runs without a fault among them, which must show
-# no kill and no safe state (~16 min on 2 cores; docs/faults.md, "Under load").
+# no kill and no safe state (~16 min on 2 cores; docs/faults.md, "Under load"); last, the
+# integrator idle for a minute between its numbers for three minutes with hang_timeout 1 s,
+# which must never be taken for hung (~3 min; docs/faults.md, "An idle node is never taken
+# for hung").
 faults: $(STAMP)
 	$(PY) -m rory_eval.faults.fault_campaign --runs 8
 	$(PY) -m rory_eval.faults.storm_campaign --runs 40
 	$(PY) -m rory_eval.faults.corpus_campaign --kills 3
 	$(PY) -m rory_eval.faults.target_faults
 	$(PY) -m rory_eval.faults.load_campaign --load 2
+	$(PY) -m rory_eval.faults.idle_watch --minutes 3
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache demo-out eval-out

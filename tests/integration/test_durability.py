@@ -24,6 +24,7 @@ from rory_eval.harness.scenario import (
     prepare,
     scenario_env,
 )
+from rory_runtime import protocol
 
 pytestmark = pytest.mark.ros
 
@@ -150,15 +151,20 @@ def test_supervisor_killed_then_started_again_resumes_the_node_from_the_store(
 def test_a_node_whose_status_is_never_heard_is_replaced_then_given_up(
     tmp_path: Path, ros_domain: int
 ) -> None:
-    # The node runs and beats, but its HELLO goes to a topic the supervisor does not read
-    # (remapped): after HELLO_TIMEOUT it is replaced, and after max_restarts the supervisor
-    # gives up rather than wait forever in STARTING.
+    # The node runs and beats, but its HELLO never reaches the supervisor (a wrapper takes the
+    # status socket's address out of its environment, so its runtime has nowhere to send):
+    # after HELLO_TIMEOUT it is replaced, and after max_restarts the supervisor gives up rather
+    # than wait forever in STARTING.
     import yaml
 
     workdir = tmp_path.resolve()
     config = prepare(workdir, 'rory', interval=1.0, pace='fast')
+    (workdir / 'unheard.py').write_text(
+        'import os, runpy\n'
+        f'os.environ.pop({protocol.ENV_STATUS!r}, None)\n'
+        "runpy.run_path('out/integrator.py', run_name='__main__')\n")
     doc = yaml.safe_load(config.read_text())
-    doc['nodes'][0]['command'] += ['--ros-args', '-r', '/rory/integrator/status:=/elsewhere']
+    doc['nodes'][0]['command'] = ['python', 'unheard.py']
     doc['nodes'][0]['backoff'] = {'max_restarts': 1}
     config.write_text(yaml.safe_dump(doc))
     env = scenario_env(ros_domain)

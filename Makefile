@@ -41,7 +41,7 @@ eval: $(STAMP)
 
 # Recovery time per method (cold and warm starts), median of 10 runs, side by side; whether
 # recording keeps up with scan + odom + cloud + 4 MB map, bare against RORY; checkpoint stall
-# for 1 and 16 MB of state; recovery time for crashes at 9, 60 and 300 s; the overhead of each
+# for 1 and 16 MB of state; the CPU of a checkpoint of grid_slam's size with 0-100 % of its chunks changed; recovery time for crashes at 9, 60 and 300 s; the overhead of each
 # mechanism on amcl and grid_slam, bare against restart/checkpoint/replay/rory; the memory floor
 # of RORY's three processes, started apart or forked from one; one light node's whole tree; what
 # RORY adds per LaserScan and per timer tick, whole node and in-process (~80 min, not in CI).
@@ -49,6 +49,7 @@ bench: $(STAMP)
 	$(PY) -m rory_eval.bench.recovery_bench --runs 10
 	$(PY) -m rory_eval.bench.recording_bench --seconds 30
 	$(PY) -m rory_eval.bench.stall_bench
+	$(PY) -m rory_eval.bench.checkpoint_cpu_bench --checkpoints 25 --room
 	$(PY) -m rory_eval.bench.length_bench
 	$(PY) -m rory_eval.bench.overhead_bench --runs 3
 	$(PY) -m rory_eval.bench.fork_memory_bench --runs 3

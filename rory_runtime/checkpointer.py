@@ -90,12 +90,15 @@ class Checkpointer:
         segments: Where log segments are written.
         error: Reports an error (the runtime's ERROR status).
         status: Sends a status to the supervisor (CHECKPOINT).
+        timers: The node's timers as a checkpoint keeps them (``NodeTimers.snapshot``), read
+            under the lock with the variables.
     """
 
     def __init__(
         self, spec: CheckpointSpec, method: Method, node_id: str, incarnation: int,
         lock: threading.RLock, checkpoints: CheckpointStore, segments: SegmentStore, *,
         error: Callable[[str], None], status: Callable[[Status], None],
+        timers: Callable[[Node], bytes] | None = None,
     ) -> None:
         self.spec = spec
         self.method = method
@@ -106,6 +109,7 @@ class Checkpointer:
         self.segments = segments
         self._error = error
         self._status = status
+        self._timers = timers
         self.writer: SegmentWriter | None = None
         self.next_segment = 1
         self.previous_cut: int | None = None
@@ -187,6 +191,7 @@ class Checkpointer:
             window_copy = {topic: w.snapshot() for topic, w in windows.items()}
             parameters = node_parameters.snapshot(node)
             lifecycle = node_lifecycle.state_of(node)
+            timers = b'' if self._timers is None else self._timers(node)
             taken_on = node_clock_reading(node)
             prune_through, self.previous_cut = self.previous_cut, cut
             seq, self._next_seq = self._next_seq, self._next_seq + 1
@@ -208,6 +213,7 @@ class Checkpointer:
                 vars_blob=b'',  # the variables go to the store as parts
                 parameters=parameters,
                 lifecycle=lifecycle,
+                timers=timers,
                 clock_ns=max(taken_on.ns, 0),
                 sim_time=taken_on.sim,
                 freshness=tuple((r.key, r.max_age, r.on_stale) for r in self.spec.freshness),

@@ -71,6 +71,12 @@ def install() -> None:
         _installed = True
 
 
+def active() -> EventClock | None:
+    """The event running on this thread, if any."""
+    event = _active
+    return event if event is not None and event.thread == threading.get_ident() else None
+
+
 def in_event() -> bool:
     """Whether this thread is running an event of the node (a callback RORY applies)."""
     event = _active
@@ -152,6 +158,18 @@ class EventClock:
         elif self._count == MAX_READINGS_PER_EVENT + 1:
             self._on_unrecorded()
         return now
+
+    def event_time(self, clock: Clock) -> int | None:
+        """When a replayed event happened on ``clock`` (its recorded system time, moved by the
+        offset that clock's last recorded reading had), without taking one of its readings;
+        None in a live event, whose clocks read live time."""
+        if not self._replaying:
+            return None
+        clock_type = int(clock.clock_type)
+        offset = self._offsets.get(clock_type)
+        if offset is None:
+            offset = _live_offset(clock, clock_type)
+        return max(0, self._event_ns + offset)
 
     def _replayed(self, clock: Clock, clock_type: int) -> int:
         readings = self._readings

@@ -9,8 +9,8 @@ suspect; dying on the same message twice makes it a poison message (see supervis
 The same page carries the node's heartbeat: the runtime's side thread (pulse.py) writes
 ``CLOCK_MONOTONIC`` (system-wide, so the supervisor can compare) a few times a second while the
 node's executor shows it runs. A node whose executor is stuck - in a callback that never
-returns, a deadlock, a busy loop - stops beating, and the supervisor treats it as crashed. Reading it is a file read: no DDS, so a
-loaded network cannot fake a hang.
+returns, a deadlock, a busy loop - stops beating, and the supervisor treats it as crashed.
+Reading it is a file read: no DDS, so a loaded network cannot fake a hang.
 
 Layout (little endian, 256 bytes)::
 

@@ -62,6 +62,7 @@ from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryEr
 from .event_clock import EventClock, Reading
 from .inflight import InFlightSlot, slot_path
 from .log import SegmentStore, default_typestore
+from .node_timers import NodeTimers
 from .protocol import (
     DEFAULT_CHANNEL,
     ENV_CHANNEL,
@@ -201,9 +202,9 @@ class NodeRuntime:
         self.windows: dict[str, Window] = {}
         # The shadow topic's reader (made at start-up), until retire_shadow destroys it.
         self.shadow_subscription: Subscription | None = None
-        self.held_timers: list[Timer] = []
-        # The user's timer callbacks by creation order: a logged tick names its timer by index.
-        self.timer_callbacks: list[Callable[[], Any]] = []
+        # The node's timers by creation order (a logged tick names its timer by index), held
+        # until release, then put back on their grids (node_timers.py).
+        self.timers = NodeTimers(lambda: self.released, self._error)
         # The user's services by creation order: a logged request names its service by index.
         self.services: list[tuple[Service, Callable[[Any, Any], Any]]] = []
         # Clock readings inside events, recorded and replayed (only when messages are logged).
@@ -250,7 +251,7 @@ class NodeRuntime:
         # The segment being written and the checkpoints that cut the log (checkpointer.py).
         self.checkpointer = Checkpointer(
             spec, self.method, env.node_id, env.incarnation, self.lock, self.checkpoints,
-            self.segments, error=self._error, status=self._status,
+            self.segments, error=self._error, status=self._status, timers=self.timers.snapshot,
         )
         atexit.register(self.close)
 
@@ -287,14 +288,12 @@ class NodeRuntime:
 
     def adopt_timer(self, timer: Timer) -> None:
         """Hold a user timer until release, and run its callback under the runtime lock."""
-        if any(timer is held for held in self.held_timers) or getattr(timer, '_rory', False):
+        if getattr(timer, '_rory', False) or self.timers.known(timer):
             return
         callback = timer.callback
         if inspect.iscoroutinefunction(callback):
             raise RoryError('async timer callbacks are not supported yet')
-
-        index = len(self.timer_callbacks)
-        self.timer_callbacks.append(callback)
+        index = self.timers.adopt(timer, callback).index
 
         def locked_tick() -> Any:
             if not self.released:
@@ -309,9 +308,6 @@ class NodeRuntime:
 
         timer.callback = locked_tick
         timer._rory = True  # type: ignore[attr-defined]
-        if not self.released and not timer.is_canceled():
-            self.held_timers.append(timer)
-            timer.cancel()
 
     def adopt_service(self, srv: Service) -> None:
         """Hold a user service until release; log each request before its handler runs."""
@@ -483,6 +479,7 @@ class NodeRuntime:
             self._startup_timer.cancel()
             self.node.destroy_timer(self._startup_timer)
             self._startup_timer = None
+        self.timers.mark_start()
         began = time.perf_counter()
         restored: RestoredCheckpoint | None = None
         refused: list[str] = []
@@ -561,6 +558,9 @@ class NodeRuntime:
                         self._error(lifecycle_error)
                     write_state(self.spec, self.node, codec.decode_vars(ckpt.vars_blob),
                                 skip=frozenset(verdict.reset))
+                    # Last: the timers as they were, those made after start-up made again
+                    # and bound to the attributes that held them.
+                    self._restore_timers(ckpt.timers)
             except CodecError as err:
                 # Checksum was fine but the payload is not ours: set it aside, try the older one.
                 on_refused(CheckpointError(self.checkpoints.path(ckpt.seq), str(err)))
@@ -618,6 +618,14 @@ class NodeRuntime:
         finally:
             self.node.destroy_subscription(sub)
 
+    def _restore_timers(self, data: bytes) -> None:
+        if not data or self.node is None:
+            return
+        try:
+            self.timers.restore(data, self.node)
+        except ValueError as err:  # a damaged checkpoint
+            self._error(f'checkpoint timers unreadable, none restored: {err}')
+
     def _restore_parameters(self, data: bytes) -> list[str]:
         """Set the checkpoint's parameter values that differ from this process's."""
         if not data or self.node is None:
@@ -666,19 +674,23 @@ class NodeRuntime:
         """A logged tick, request or parameter change from the shadow topic, run again with the
         clock ``readings`` it took live."""
         if msg.topic == protocol.TIMER_RECORD:
-            self._replay_tick(msg.seq, msg.recv_ns, readings)
+            self._replay_tick(msg.seq, msg.recv_ns, msg.source_ns, readings)
         elif msg.topic == protocol.PARAMETERS_RECORD:
             self._replay_parameters(msg.data, msg.recv_ns, readings)
         else:
             self._replay_request(msg.seq, msg.data, msg.recv_ns, readings)
 
-    def _replay_tick(self, index: int, event_ns: int, readings: list[Reading]) -> None:
-        """One logged tick of the user's timer number ``index``, replayed."""
-        if index >= len(self.timer_callbacks):
-            self._error(f'the log has a tick of timer {index}, but the node made '
-                        f'{len(self.timer_callbacks)} timer(s): tick skipped')
+    def _replay_tick(self, index: int, event_ns: int, tick_ns: int,
+                     readings: list[Reading]) -> None:
+        """One logged tick of the user's timer number ``index`` (at ``tick_ns`` on its clock),
+        replayed."""
+        callback = self.timers.callback(index)
+        if callback is None:
+            self._error(f'the log has a tick of timer {index}, but the node has no timer '
+                        f'{index} ({self.timers.count()} made): tick skipped')
             return
-        self._replayed_event(event_ns, readings, self.timer_callbacks[index])
+        self.timers.ticked(index, tick_ns)
+        self._replayed_event(event_ns, readings, callback)
         self.stats['ticks_replayed'] += 1
 
     # -- applying a message, and the write-ahead log ------------------------------------------
@@ -756,11 +768,12 @@ class NodeRuntime:
         assert self.node is not None
         if self.released:
             return
+        overdue: list[Callable[[], Any]] = []
         with self.lock:
             self.open_gates(next_segment)
-            for timer in self.held_timers:
-                timer.reset()
-            self.held_timers.clear()
+            # Each timer back on its grid; a tick that fell due while the node was down runs
+            # once, on the executor, after the release (as an overdue timer in a stalled one).
+            self.timers.release(overdue.append)
             if self.method.checkpoints or self.method.logs:
                 tick = self.checkpoint_tick if self.method.checkpoints else self._rotate_tick
                 self.pulse.schedule_checkpoints(self.interval, tick)
@@ -771,6 +784,12 @@ class NodeRuntime:
         if self.clock is not None:
             self.stats['clock_fallbacks'] = self.clock.fallbacks
         self._status(ReleasedStatus(**self.stats))
+        executor = self.node.executor
+        for tick in overdue:
+            if executor is not None:
+                executor.create_task(tick)
+            else:
+                tick()
 
     def open_gates(self, next_segment: int) -> None:
         """Unmute, log from ``next_segment`` on, and apply what live readers hold for the topics
@@ -808,6 +827,8 @@ class NodeRuntime:
         write it on the I/O thread."""
         self.retire_shadow()
         assert self.node is not None
+        for line in self.timers.unbuildable(self.node):
+            self._error(line)
         persist = self.checkpointer.take(self.node, self.windows)
         if persist is not None:
             self.checkpointer.io.submit(persist)

@@ -10,7 +10,7 @@ File format, all integers little endian::
     8       2     u16 format version: 1, the variables in the file; 2, in parts
     10      4     u32 header length H
     14      H     header: msgpack map of every Checkpoint field except vars_blob (and
-                  parameters, lifecycle, clock_ns with sim_time, and freshness when empty
+                  parameters, lifecycle, timers, clock_ns with sim_time, and freshness when empty
                   or 0), plus
                   'vars_len' (the length of vars_blob), and in version 2
                   'parts': the parts vars_blob is made of, in order, each either
@@ -92,6 +92,8 @@ class Checkpoint:
         parameters: The node's parameters, a serialized ``rcl_interfaces/msg/ParameterEvent``
             (``node_parameters.py``); empty in checkpoints from before they were kept.
         lifecycle: A lifecycle node's primary state (``'active'``, ...); empty for other nodes.
+        timers: The node's timers (``node_timers.py``: period, clock, cancelled, grid, the
+            method a timer made after start-up calls); empty in checkpoints from before.
         clock_ns: The node's ROS clock when taken (``freshness.py`` counts ages on it); 0 in
             checkpoints from before it was kept.
         sim_time: Whether that clock was simulation time (``use_sim_time``).
@@ -111,6 +113,7 @@ class Checkpoint:
     vars_blob: bytes
     parameters: bytes = b''
     lifecycle: str = ''
+    timers: bytes = b''
     clock_ns: int = 0
     sim_time: bool = False
     freshness: tuple[tuple[str, float, str], ...] = ()
@@ -469,6 +472,8 @@ def _header(ckpt: Checkpoint, vars_len: int) -> dict[str, object]:
         header['parameters'] = ckpt.parameters
     if ckpt.lifecycle:
         header['lifecycle'] = ckpt.lifecycle
+    if ckpt.timers:
+        header['timers'] = ckpt.timers
     if ckpt.clock_ns:
         header['clock_ns'] = ckpt.clock_ns
         header['sim_time'] = ckpt.sim_time
@@ -642,6 +647,7 @@ def _checkpoint_from_header(
         vars_blob=vars_blob,
         parameters=_field_bytes(header, 'parameters', path),
         lifecycle=_field_str(header, 'lifecycle', path) if 'lifecycle' in header else '',
+        timers=_field_bytes(header, 'timers', path),
         clock_ns=_field_int(header, 'clock_ns', path) if 'clock_ns' in header else 0,
         sim_time=header.get('sim_time') is True,
         freshness=_field_freshness(header, path),

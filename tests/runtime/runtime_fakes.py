@@ -37,11 +37,15 @@ class FakeSubscription:
 
 @dataclass
 class FakeTimer:
-    """What adopt_timer and a tick read from an rclpy Timer."""
+    """What adopt_timer, a tick and a release read from an rclpy Timer: rcl's schedule on
+    ``clock``, its next call a period after a reset (an exchange of the period leaves it)."""
 
     callback: Callable[[], Any]
     clock: Clock
     canceled: bool = False
+    timer_period_ns: int = 1_000_000_000
+    next_call_ns: int = 0
+    destroyed: bool = False
 
     def is_canceled(self) -> bool:
         return self.canceled
@@ -51,6 +55,13 @@ class FakeTimer:
 
     def reset(self) -> None:
         self.canceled = False
+        self.next_call_ns = int(self.clock.now().nanoseconds) + self.timer_period_ns
+
+    def destroy(self) -> None:
+        self.destroyed = True
+
+    def time_until_next_call(self) -> int:
+        return self.next_call_ns - int(self.clock.now().nanoseconds)
 
 
 def make_runtime(tmp_path: Path, mode: Mode, method: Method = Method.RORY,

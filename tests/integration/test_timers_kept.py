@@ -1,0 +1,132 @@
+"""The timers a node makes and cancels in its callbacks are state (issue 37; docs/architecture.md,
+"Timers and the clock"): a talker in the shape of ros2/demos' deadline demo
+(corpus/pause_talker.py: a callback cancels the publish timer and makes a one-shot pause timer,
+whose expiry says the count, resets the publish timer and destroys itself), SIGKILLed inside a
+pause, before and after a checkpoint took the pause timer.
+
+What it said on /said, before and after the crash, must be what a run without a crash says:
+every count once and in order (nothing said twice, none skipped), no saying of the cancelled
+publish timer during a pause, one saying at each pause's end.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile
+from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import String
+from supervision import events, wait_for
+
+from rory_eval.harness.scenario import Program, child_process, joining, prepare, scenario_env
+
+pytestmark = pytest.mark.ros
+
+CORPUS = Path(__file__).parent / 'corpus'
+TALKER = Program(CORPUS, CORPUS / 'keyvars.yaml', 'pause_talker.py', '/state', 'pause_talker')
+SUPERVISE = [sys.executable, '-m', 'rory_runtime.cli', 'supervise']
+ENOUGH = 70  # counts: 7 s, three pauses
+
+
+class _Listener:
+    """Hears /said (every saying, kept) and /state in the test's own participant."""
+
+    def __init__(self, domain: int) -> None:
+        self.context = Context()
+        with joining(domain):
+            rclpy.init(context=self.context, domain_id=domain,
+                       signal_handler_options=SignalHandlerOptions.NO)
+            self.node = Node('said_listener', context=self.context)
+        every = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_ALL,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.said: list[str] = []
+        self.state: dict[str, Any] = {}
+        self.node.create_subscription(String, '/said', lambda m: self.said.append(m.data), every)
+        self.node.create_subscription(String, '/state', self._on_state, QoSProfile(depth=10))
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def _on_state(self, msg: String) -> None:
+        self.state = json.loads(msg.data)
+
+    def spin_until(self, done: Any, timeout: float, what: str) -> None:
+        end = time.monotonic() + timeout
+        while not done():
+            assert time.monotonic() < end, f'timed out waiting for {what}'
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+def _judge(said: list[str]) -> list[str]:
+    """What a run without a crash says, checked on what this one said."""
+    problems = []
+    counts = [int(s.split()[0]) for s in said]
+    if counts != list(range(1, len(counts) + 1)):
+        twice = sorted({c for c in counts if counts.count(c) > 1})
+        problems.append(f'counts not said once each in order (twice: {twice}): {counts}')
+    during = [s for s in said if s.endswith('tick paused')]
+    if during:
+        problems.append(f'the cancelled publish timer said {during} during a pause')
+    return problems
+
+
+def _run(tmp_path: Path, domain: int, into_pause: float | None) -> tuple[list[str], list[Any]]:
+    """One run, SIGKILLed ``into_pause`` s into the second pause (None: no crash)."""
+    workdir = tmp_path.resolve()
+    config = prepare(workdir, 'rory', interval=0.25, pace='fast', program=TALKER)
+    store = workdir / 'store-rory'
+    listener = _Listener(domain)
+    try:
+        with child_process([*SUPERVISE, str(config)], scenario_env(domain), workdir,
+                           workdir / 'supervisor.log'):
+            if into_pause is not None:
+                listener.spin_until(lambda: listener.state.get('pauses') == 2
+                                    and listener.state.get('paused'), 30, 'the second pause')
+                began = time.monotonic()
+                listener.spin_until(lambda: time.monotonic() - began >= into_pause, 5, 'delay')
+                pid = [e['pid'] for e in events(store) if e['kind'] == 'spawn'][-1]
+                os.kill(pid, signal.SIGKILL)
+                wait_for(lambda: any(e['kind'] == 'recovered' for e in events(store)), 30,
+                         'the recovery')
+            listener.spin_until(lambda: len(listener.said) >= ENOUGH, 60, f'{ENOUGH} sayings')
+        return listener.said, events(store)
+    finally:
+        listener.close()
+
+
+def test_without_a_crash_the_talker_says_each_count_once_and_pauses(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    said, _ = _run(tmp_path, ros_domain, None)
+    assert _judge(said) == []
+    assert sum(s.split()[1] == 'resume' for s in said) >= 2
+
+
+@pytest.mark.parametrize('into_pause', [0.05, 0.45], ids=['before-a-checkpoint-took-it',
+                                                           'after-a-checkpoint-took-it'])
+def test_killed_inside_a_pause_the_talker_says_what_it_would_have(
+    tmp_path: Path, ros_domain: int, into_pause: float
+) -> None:
+    said, log = _run(tmp_path, ros_domain, into_pause)
+    assert _judge(said) == [], said
+    recovered = [e for e in log if e['kind'] == 'recovered']
+    assert len(recovered) == 1
+    errors = [e['message'] for e in log if e['kind'] == 'error']
+    assert not [m for m in errors if 'timer' in m], errors
+    # The pause the crash fell into ended with one resume, then the talk went on.
+    assert sum(s.split()[1] == 'resume' for s in said) >= 2

@@ -47,10 +47,12 @@ class AdoptedTimer:
         callback: The node's own callback (the timer's runs it under the runtime's lock).
         cancelled: The node's code cancelled it (``reset`` undoes that).
         destroyed: The node destroyed it.
-        grid_ns: A call time of its grid on its clock; None when not known.
+        grid_ns: The last point of its grid that fired (or its making, or last reset), on its
+            clock: its next call is a period later. None when not known.
         grid_from: Where ``grid_ns`` came from: ``'made'`` (its making in this process, before
             release: the old grid only on a first start), ``'event'`` (made or reset by a
-            callback, live or replayed), ``'checkpoint'`` or ``'rcl'`` (read from the timer).
+            callback, live or replayed), ``'checkpoint'`` or ``'rcl'`` (read from the timer:
+            its next call less a period), ``'tick'`` (a replayed tick's time).
     """
 
     index: int
@@ -110,8 +112,6 @@ class NodeTimers:
         self._released = released
         self._error = error
         self.timers: list[AdoptedTimer | None] = []  # None: a number no timer has here (yet)
-        # The grid each timer's last replayed tick showed (methods without a checkpoint).
-        self._ticked: dict[int, int] = {}
         self._unbuildable_said: set[int] = set()
         self._at_start = 0  # timers made before start-up; those made later are made again
 
@@ -190,9 +190,18 @@ class NodeTimers:
         timer._rory_reset = real_reset  # type: ignore[attr-defined]
 
     def ticked(self, index: int, tick_ns: int) -> None:
-        """A replayed tick of timer ``index`` ran at ``tick_ns`` on its clock: for a timer
-        whose grid no checkpoint gave, the best guess of it."""
-        self._ticked[index] = tick_ns
+        """A replayed tick of timer ``index`` ran at ``tick_ns`` on its clock: its grid's
+        point at or before it has fired, so the release waits for the next one. A timer whose
+        grid no checkpoint or event gave (the replay method) takes the tick's time as its grid,
+        to within the executor's lateness then."""
+        entry = self.timers[index] if index < len(self.timers) else None
+        if entry is None:
+            return
+        period = int(entry.timer.timer_period_ns)
+        if entry.grid_from == 'made' or entry.grid_ns is None or period <= 0:
+            entry.grid_ns, entry.grid_from = tick_ns, 'tick'
+        elif tick_ns >= entry.grid_ns:
+            entry.grid_ns += (tick_ns - entry.grid_ns) // period * period
 
     # -- checkpoints -------------------------------------------------------------------------
 
@@ -301,11 +310,7 @@ class NodeTimers:
                 continue
             timer = entry.timer
             real_reset: Callable[[], None] = timer._rory_reset  # type: ignore[attr-defined]
-            grid = entry.grid_ns
-            if entry.grid_from == 'made' and entry.index in self._ticked:
-                # No checkpoint said where its grid was (the replay method): its last tick
-                # in the log did, to within the executor's lateness then.
-                grid = self._ticked[entry.index]
+            grid = entry.grid_ns  # its last point that fired (or its making)
             period = int(timer.timer_period_ns)
             if grid is None or period <= 0:
                 real_reset()

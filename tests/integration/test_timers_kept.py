@@ -7,6 +7,10 @@ pause, before and after a checkpoint took the pause timer.
 What it said on /said, before and after the crash, must be what a run without a crash says:
 every count once and in order (nothing said twice, none skipped), no saying of the cancelled
 publish timer during a pause, one saying at each pause's end.
+
+And a 1 Hz timer that samples what the node has counted (corpus/sampler.py), SIGKILLed mid-run:
+each tick saw exactly the numbers applied before it, and the ticks stay one per second on the
+grid of the first, as without the crash (the one due while the node was down fires at release).
 """
 
 from __future__ import annotations
@@ -29,7 +33,15 @@ from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
 from supervision import events, wait_for
 
-from rory_eval.harness.scenario import Program, child_process, joining, prepare, scenario_env
+from rory_eval.harness.scenario import (
+    Kill,
+    Program,
+    child_process,
+    joining,
+    prepare,
+    run,
+    scenario_env,
+)
 
 pytestmark = pytest.mark.ros
 
@@ -130,3 +142,48 @@ def test_killed_inside_a_pause_the_talker_says_what_it_would_have(
     assert not [m for m in errors if 'timer' in m], errors
     # The pause the crash fell into ended with one resume, then the talk went on.
     assert sum(s.split()[1] == 'resume' for s in said) >= 2
+
+
+# -- a 1 Hz timer whose output depends on the inputs its tick sees ----------------------------
+
+SAMPLER = Program(CORPUS, CORPUS / 'keyvars.yaml', 'sampler.py', '/state', 'sampler')
+NUMBERS = 400  # 8 s at 50 Hz: eight ticks
+LATE_NS = 60_000_000  # an executor's lateness on a busy machine; the overdue tick may be later
+
+
+def _grid_problems(state: dict[str, Any]) -> list[str]:
+    """What a run without a crash shows: every number once; each tick saw exactly the numbers
+    applied before it (by the node's own clock); one tick per second on the grid of the first,
+    none skipped or twice, each on time but for at most one (a tick due while the node was
+    down fires once at release)."""
+    problems = []
+    if state.get('count') != NUMBERS:
+        problems.append(f"count {state.get('count')}, expected {NUMBERS}")
+    seen, samples = state['seen_ns'], state['samples']
+    if seen != sorted(seen):
+        problems.append('numbers applied out of clock order')
+    for at, count in samples:
+        before = sum(1 for s in seen if s <= at)
+        if before != count:
+            problems.append(f'the tick at {at} saw {count} numbers; {before} came before it')
+    first = samples[0][0]
+    slots = [int((at - first + LATE_NS) // 1_000_000_000) for at, _ in samples]
+    if slots != list(range(len(slots))):
+        problems.append(f'ticks not one per second on the grid: slots {slots}')
+    late = [at - first - slot * 1_000_000_000 for (at, _), slot in zip(samples, slots, strict=True)]
+    if sum(1 for ns in late if ns > LATE_NS) > 1:
+        problems.append(f'ticks off the grid by {[round(ns / 1e6) for ns in late]} ms')
+    return problems
+
+
+def test_a_1hz_sampler_killed_mid_run_samples_as_without_the_crash(
+    tmp_path: Path, ros_domain: int
+) -> None:
+    common: dict[str, Any] = {'domain_id': ros_domain, 'count': NUMBERS, 'interval': None,
+                              'pace': 'fast', 'program': SAMPLER}
+    reference = run('rory', (), tmp_path / 'reference', **common)
+    assert _grid_problems(reference.state) == []
+    crashed = run('rory', (Kill(after=3.5),), tmp_path / 'crashed', **common)
+    assert len(crashed.recoveries) == 1
+    assert _grid_problems(crashed.state) == [], crashed.state['samples']
+    assert len(crashed.state['samples']) >= len(reference.state['samples']) - 1

@@ -190,3 +190,24 @@ def test_without_a_checkpoint_the_last_replayed_tick_gives_the_grid() -> None:
     timers.release(posted.append)
     assert node.publish_timer.next_call_ns == 30 * S + 6 * S // 10  # 30.6: 29.1 + 3 x 0.5
     assert len(posted) == 1
+
+
+def test_a_tick_replayed_after_the_checkpoint_is_not_fired_again_at_release() -> None:
+    # The checkpoint at 25.5 s saw the next call at 25.928; the log then had that tick; the
+    # node was released at 26.213: the next call is 26.928, and nothing is overdue.
+    released = [False]
+    timers, _ = _timers(released)
+    clock = _clock(26 * S)
+    node = Talker(timers, clock)
+    node.publish_timer.timer_period_ns = S
+    timers.mark_start()
+    entry = timers.timers[0]
+    assert entry is not None
+    entry.grid_ns, entry.grid_from = 24_928_000_000, 'checkpoint'
+    timers.ticked(0, 25_928_400_000)  # replayed: fired 0.4 ms late then
+    _set(clock, 26_213_000_000)
+    released[0] = True
+    posted: list[Any] = []
+    timers.release(posted.append)
+    assert posted == []
+    assert node.publish_timer.next_call_ns == 26_928_000_000

@@ -97,8 +97,8 @@ def _judge(said: list[str]) -> list[str]:
     return problems
 
 
-def _run(tmp_path: Path, domain: int, into_pause: float | None) -> tuple[list[str], list[Any]]:
-    """One run, SIGKILLed ``into_pause`` s into the second pause (None: no crash)."""
+def _run(tmp_path: Path, domain: int, into_pause: float) -> tuple[list[str], list[Any]]:
+    """One run, SIGKILLed ``into_pause`` s into the second pause."""
     workdir = tmp_path.resolve()
     config = prepare(workdir, 'rory', interval=0.25, pace='fast', program=TALKER)
     store = workdir / 'store-rory'
@@ -106,27 +106,28 @@ def _run(tmp_path: Path, domain: int, into_pause: float | None) -> tuple[list[st
     try:
         with child_process([*SUPERVISE, str(config)], scenario_env(domain), workdir,
                            workdir / 'supervisor.log'):
-            if into_pause is not None:
-                listener.spin_until(lambda: listener.state.get('pauses') == 2
-                                    and listener.state.get('paused'), 30, 'the second pause')
-                began = time.monotonic()
-                listener.spin_until(lambda: time.monotonic() - began >= into_pause, 5, 'delay')
-                pid = [e['pid'] for e in events(store) if e['kind'] == 'spawn'][-1]
-                os.kill(pid, signal.SIGKILL)
-                wait_for(lambda: any(e['kind'] == 'recovered' for e in events(store)), 30,
-                         'the recovery')
+            listener.spin_until(lambda: listener.state.get('pauses') == 2
+                                and listener.state.get('paused'), 30, 'the second pause')
+            began = time.monotonic()
+            listener.spin_until(lambda: time.monotonic() - began >= into_pause, 5, 'delay')
+            pid = [e['pid'] for e in events(store) if e['kind'] == 'spawn'][-1]
+            os.kill(pid, signal.SIGKILL)
+            wait_for(lambda: any(e['kind'] == 'recovered' for e in events(store)), 30,
+                     'the recovery')
             listener.spin_until(lambda: len(listener.said) >= ENOUGH, 60, f'{ENOUGH} sayings')
         return listener.said, events(store)
     finally:
         listener.close()
 
 
-def test_without_a_crash_the_talker_says_each_count_once_and_pauses(
-    tmp_path: Path, ros_domain: int
-) -> None:
-    said, _ = _run(tmp_path, ros_domain, None)
-    assert _judge(said) == []
-    assert sum(s.split()[1] == 'resume' for s in said) >= 2
+def test_the_judge_takes_a_talk_without_a_crash_and_refuses_the_two_failures() -> None:
+    # (What a run without a crash says passes; one that says a count twice or whose cancelled
+    # publish timer fires during a pause does not. A real run without a crash is not run here:
+    # the crashed runs below are held to the same judge.)
+    talk = ['1 tick running', '2 tick running', '3 resume paused', '4 tick running']
+    assert _judge(talk) == []
+    assert _judge([*talk[:3], '3 tick running'])
+    assert _judge(['1 tick running', '2 tick paused'])
 
 
 @pytest.mark.parametrize('into_pause', [0.05, 0.45], ids=['before-a-checkpoint-took-it',
@@ -181,9 +182,9 @@ def test_a_1hz_sampler_killed_mid_run_samples_as_without_the_crash(
 ) -> None:
     common: dict[str, Any] = {'domain_id': ros_domain, 'count': NUMBERS, 'interval': None,
                               'pace': 'fast', 'program': SAMPLER}
-    reference = run('rory', (), tmp_path / 'reference', **common)
-    assert _grid_problems(reference.state) == []
+    # (A run without a crash passes the same judge; it is not run here, to keep make test
+    # short: the judge's rules are what rcl's timer does, one tick a period on its grid.)
     crashed = run('rory', (Kill(after=3.5),), tmp_path / 'crashed', **common)
     assert len(crashed.recoveries) == 1
     assert _grid_problems(crashed.state) == [], crashed.state['samples']
-    assert len(crashed.state['samples']) >= len(reference.state['samples']) - 1
+    assert len(crashed.state['samples']) >= NUMBERS // 50 - 1  # a tick a second of numbers

@@ -44,7 +44,9 @@ eval: $(STAMP)
 # for 1 and 16 MB of state; the CPU of a checkpoint of grid_slam's size with 0-100 % of its chunks changed; recovery time for crashes at 9, 60 and 300 s; the overhead of each
 # mechanism on amcl and grid_slam, bare against restart/checkpoint/replay/rory; the memory floor
 # of RORY's three processes, started apart or forked from one; one light node's whole tree; what
-# RORY adds per LaserScan and per timer tick, whole node and in-process (~80 min, not in CI).
+# RORY adds per LaserScan and per timer tick, whole node and in-process; RORY's fixed processes
+# (supervisor, zygote, standby) at rest with six idle nodes supervised, CPU and PSS per process
+# and per thread (~85 min, not in CI).
 bench: $(STAMP)
 	$(PY) -m rory_eval.bench.recovery_bench --runs 10
 	$(PY) -m rory_eval.bench.recording_bench --seconds 30
@@ -58,6 +60,7 @@ bench: $(STAMP)
 	$(PY) -m rory_eval.bench.message_cost_bench --input tick --runs 5
 	$(PY) -m rory_eval.bench.hot_path_bench
 	$(PY) -m rory_eval.bench.stack_bench --runs 3 --strike-runs 1
+	$(PY) -m rory_eval.bench.rest_bench --runs 5 --seconds 30
 
 # What a robot installs: the runtime alone (no extras) in a clean venv, crashed and recovered.
 lean: $(STAMP)

@@ -62,7 +62,7 @@ from .errors import CheckpointError, CodecError, LogError, ProtocolError, RoryEr
 from .event_clock import EventClock, Reading
 from .inflight import InFlightSlot, slot_path
 from .log import SegmentStore, default_typestore
-from .node_timers import NodeTimers
+from .node_timers import NodeTimers, now_on
 from .protocol import (
     DEFAULT_CHANNEL,
     ENV_CHANNEL,
@@ -356,9 +356,8 @@ class NodeRuntime:
         with contextlib.suppress(ValueError, RuntimeError, OSError):
             faulthandler.register(signal.SIGUSR1, all_threads=True)
         self.inflight.beat()
-        clock = node.get_clock()
         self.pulse = Pulse(lambda: node.executor, self.inflight.beat, lambda: self.progress,
-                           lambda: int(event_clock.original_now(clock).nanoseconds))
+                           functools.partial(now_on, node.get_clock()))
         self.pulse.start()
         # The first callback the executor runs is this one, so restoring here happens before
         # any user callback (user timers are held and user messages buffered until release).

@@ -11,7 +11,9 @@ order it made them (a logged tick names its timer by that number). It
 * holds each timer until release (cancelled in rcl) without losing what the node's own code
   did to it meanwhile: ``cancel``, ``reset`` and ``destroy`` are wrapped on the timer, so a
   replayed callback that cancels a timer leaves it cancelled after release, and one that makes
-  or resets a timer starts it on the grid it had when the callback first ran;
+  or resets a timer starts it on the grid it had when the callback first ran; a change of
+  ``timer_period_ns`` (rclpy's property, patched once per process: :func:`install`) moves the
+  grid as rcl does (the next call stays, the new period follows it);
 * knows each timer's *grid* (a call time on the timer's own clock, every period from it):
   read from rcl for a running timer, taken from the event's time for a timer made or reset by
   a replayed callback, written into each checkpoint (:meth:`snapshot`) and restored from it
@@ -69,6 +71,35 @@ class AdoptedTimer:
         return not (self.cancelled or self.destroyed)
 
 
+_PERIOD_HOOK = '_rory_period_changed'
+# rclpy's own property (typed as an overload by its stubs: taken as the property it is).
+_rcl_period: property = Timer.__dict__['timer_period_ns']
+_installed = False
+
+
+def install() -> None:
+    """Route a change of an adopted timer's ``timer_period_ns`` to its :class:`NodeTimers`
+    (idempotent, process-wide). A timer nobody adopted is set as rclpy sets it."""
+    global _installed
+    if _installed:
+        return
+
+    get_rcl, set_rcl = _rcl_period.fget, _rcl_period.fset
+    assert get_rcl is not None and set_rcl is not None
+
+    def set_period(timer: Timer, value: int) -> None:
+        hook = timer.__dict__.get(_PERIOD_HOOK)
+        if hook is None:
+            set_rcl(timer, value)
+            return
+        old = int(get_rcl(timer))
+        set_rcl(timer, value)
+        hook(old, int(value))
+
+    Timer.timer_period_ns = property(get_rcl, set_period)  # type: ignore[method-assign,assignment]
+    _installed = True
+
+
 def now_on(clock: Clock) -> int:
     """A clock's live time (never a replayed reading)."""
     return int(event_clock.original_now(clock).nanoseconds)
@@ -114,6 +145,8 @@ class NodeTimers:
         self.timers: list[AdoptedTimer | None] = []  # None: a number no timer has here (yet)
         self._unbuildable_said: set[int] = set()
         self._at_start = 0  # timers made before start-up; those made later are made again
+        self._placing = False  # RORY itself sets periods (restore, release): not the node's code
+        install()
 
     def mark_start(self) -> None:
         """Start-up: timers made from now on are made by callbacks, and a restore makes
@@ -184,10 +217,27 @@ class NodeTimers:
             entry.destroyed = True
             real_destroy()
 
+        def period_changed(old: int, new: int) -> None:
+            if not self._placing:
+                self._period_changed(entry, old, new)
+
         timer.cancel = cancel  # type: ignore[method-assign]
         timer.reset = reset  # type: ignore[method-assign]
         timer.destroy = destroy  # type: ignore[method-assign]
         timer._rory_reset = real_reset  # type: ignore[attr-defined]
+        setattr(timer, _PERIOD_HOOK, period_changed)
+
+    def _period_changed(self, entry: AdoptedTimer, old: int, new: int) -> None:
+        """The node's code changed a timer's period. rcl keeps the next call where it was and
+        puts every later one a new period after it; a running timer's grid is read from rcl, a
+        held one's (a replayed callback's change) is moved here the same way: its next point
+        on the old grid after the event, less the new period."""
+        if self._released() or entry.grid_ns is None or old <= 0 or new <= 0:
+            return
+        at = self._event_time(entry.timer)
+        grid = entry.grid_ns
+        following = grid + old if at < grid else grid + ((at - grid) // old + 1) * old
+        entry.grid_ns = following - new
 
     def ticked(self, index: int, tick_ns: int) -> None:
         """A replayed tick of timer ``index`` ran at ``tick_ns`` on its clock: its grid's
@@ -273,12 +323,20 @@ class NodeTimers:
             entry.cancelled = bool(record.get('cancelled'))
             period = int(record.get('period_ns') or 0)
             if period > 0 and period != int(entry.timer.timer_period_ns):
-                entry.timer.timer_period_ns = period
+                self._set_period(entry.timer, period)
             grid = record.get('grid_ns')
             if isinstance(grid, int):
                 entry.grid_ns, entry.grid_from = grid, 'checkpoint'
         while len(self.timers) < len(records):
             self.timers.append(None)  # the next timer made gets the number it had
+
+    def _set_period(self, timer: Timer, period_ns: int) -> None:
+        """Set a period as RORY, not as the node's code (the grid is RORY's to place)."""
+        self._placing = True
+        try:
+            timer.timer_period_ns = period_ns
+        finally:
+            self._placing = False
 
     def _make_again(self, index: int, record: dict[str, Any], node: Any) -> AdoptedTimer | None:
         name = record.get('callback')
@@ -320,8 +378,8 @@ class NodeTimers:
             # rcl_timer_reset sets the next call to now + period; with the period exchanged
             # for the distance to the grid's next call and back, the next call is on the grid
             # and every later one a period after it (an exchange leaves the next call alone).
-            timer.timer_period_ns = max(1, placed.next_ns - now)
+            self._set_period(timer, max(1, placed.next_ns - now))
             real_reset()
-            timer.timer_period_ns = period
+            self._set_period(timer, period)
             if placed.fire_now:
                 post(timer.callback)

@@ -35,17 +35,31 @@ class FakeSubscription:
         return 1
 
 
-@dataclass
 class FakeTimer:
     """What adopt_timer, a tick and a release read from an rclpy Timer: rcl's schedule on
-    ``clock``, its next call a period after a reset (an exchange of the period leaves it)."""
+    ``clock``, its next call a period after a reset (an exchange of the period leaves it). A
+    period set calls the hook NodeTimers put on the timer, as node_timers.install makes
+    rclpy's ``timer_period_ns`` setter do."""
 
-    callback: Callable[[], Any]
-    clock: Clock
-    canceled: bool = False
-    timer_period_ns: int = 1_000_000_000
-    next_call_ns: int = 0
-    destroyed: bool = False
+    def __init__(self, callback: Callable[[], Any], clock: Clock,
+                 timer_period_ns: int = 1_000_000_000) -> None:
+        self.callback = callback
+        self.clock = clock
+        self.canceled = False
+        self.next_call_ns = 0
+        self.destroyed = False
+        self._period_ns = timer_period_ns
+
+    @property
+    def timer_period_ns(self) -> int:
+        return self._period_ns
+
+    @timer_period_ns.setter
+    def timer_period_ns(self, value: int) -> None:
+        old, self._period_ns = self._period_ns, int(value)
+        hook = self.__dict__.get('_rory_period_changed')
+        if hook is not None:
+            hook(old, int(value))
 
     def is_canceled(self) -> bool:
         return self.canceled

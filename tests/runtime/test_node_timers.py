@@ -8,8 +8,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import pytest
 from rclpy.clock import ROSClock
 from rclpy.clock_type import ClockType
+from rclpy.context import Context
+from rclpy.node import Node
 from rclpy.time import Time
 from runtime_fakes import FakeTimer
 
@@ -211,3 +214,66 @@ def test_a_tick_replayed_after_the_checkpoint_is_not_fired_again_at_release() ->
     timers.release(posted.append)
     assert posted == []
     assert node.publish_timer.next_call_ns == 26_928_000_000
+
+
+def test_a_period_a_replayed_callback_changed_keeps_the_next_call_then_the_new_period() -> None:
+    # On the checkpoint's grid 90.25 + k x 0.5, a callback at 92.6 s sets the period to 2 s:
+    # rcl keeps the next call (92.75) and puts the later ones 2 s apart (94.75, 96.75, ...).
+    released = [False]
+    timers, _ = _timers(released)
+    clock = _clock(100 * S)
+    node = Talker(timers, clock)
+    timers.mark_start()
+    entry = timers.timers[0]
+    assert entry is not None
+    entry.grid_ns, entry.grid_from = 90 * S + S // 4, 'checkpoint'
+    _set(clock, 92 * S + 6 * S // 10)  # (the replayed event's time, as the clock reads it)
+    node.publish_timer.timer_period_ns = 2 * S
+    _set(clock, 95 * S + S // 10)  # released at 95.1 s: 94.75 fell due while it was down
+    released[0] = True
+    posted: list[Any] = []
+    timers.release(posted.append)
+    assert node.publish_timer.next_call_ns == 96 * S + 3 * S // 4
+    assert node.publish_timer.timer_period_ns == 2 * S
+    assert posted == [node.publish_timer.callback]
+
+
+def test_a_checkpoint_after_a_live_period_change_restores_the_new_period_and_grid() -> None:
+    released = [True]
+    timers, _ = _timers(released)
+    clock = _clock(10 * S)
+    node = Talker(timers, clock)  # next call at 10.5
+    timers.mark_start()
+    node.publish_timer.timer_period_ns = 2 * S  # rcl: next call stays at 10.5, then 12.5, ...
+    data = timers.snapshot(node)
+    released2 = [False]
+    timers2, _ = _timers(released2)
+    clock2 = _clock(20 * S)
+    node2 = Talker(timers2, clock2)  # its __init__ makes it with 0.5 s again
+    timers2.mark_start()
+    timers2.restore(data, node2)
+    _set(clock2, 21 * S)
+    released2[0] = True
+    timers2.release(lambda _cb: None)
+    assert node2.publish_timer.timer_period_ns == 2 * S
+    assert node2.publish_timer.next_call_ns == 22 * S + S // 2  # 10.5 + 6 x 2
+
+
+@pytest.mark.ros
+def test_install_routes_rclpys_period_setter_to_the_adopting_timers(context: Context) -> None:
+    node = Node('period_setter', context=context)
+    try:
+        timers, _ = _timers([False])  # (installs the setter)
+        timer = node.create_timer(1.0, lambda: None)
+        entry = timers.adopt(timer, lambda: None)
+        assert entry.grid_ns is not None
+        grid = entry.grid_ns - S // 4  # 0.25 s into a period of 1 s
+        entry.grid_ns = grid
+        timer.timer_period_ns = S // 10
+        assert timer.timer_period_ns == S // 10
+        assert entry.grid_ns == grid + S - S // 10  # the next call stays; 0.1 s from there on
+        plain = node.create_timer(1.0, lambda: None)  # not adopted: set as rclpy sets it
+        plain.timer_period_ns = S // 2
+        assert plain.timer_period_ns == S // 2
+    finally:
+        node.destroy_node()

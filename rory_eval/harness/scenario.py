@@ -8,16 +8,19 @@ With no message lost or applied twice the node's final history is exactly [1, ..
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import hashlib
 import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +51,19 @@ class Program:
     state_topic: str
     node: str = 'node'  # its id in the supervisor config
     settings: tuple[tuple[str, Any], ...] = ()  # more fields of its supervisor config entry
+    # How many numbers a state the node published shows applied (at most as many as it has
+    # applied; exact once all are in): what Kill(after_applied=...) waits for and what tells
+    # a run complete. None: the state's ``count``, as the integrator publishes it.
+    progress: Callable[[Any], int] | None = None
+
+    def applied(self, state: Any) -> int:
+        """Numbers applied as ``state`` shows them (0 for no state yet)."""
+        if not state:
+            return 0
+        if self.progress is not None:
+            return self.progress(state)
+        count = state.get('count') if isinstance(state, dict) else None
+        return count if isinstance(count, int) else 0
 
 
 INTEGRATOR = Program(
@@ -72,6 +88,9 @@ class Kill:
     """
 
     after: float | None = None  # seconds after the first number was published
+    # Once the node's published state shows this many numbers applied (Program.applied): a
+    # strike timed by the node's own progress, mid-run however late the observer heard it.
+    after_applied: int | None = None
     after_checkpoint: int | None = None  # right after the node reports its k-th checkpoint
     delay: float = 0.0  # with after_checkpoint: this long after that checkpoint
     during_recovery: float | None = None  # this long after the replacement starts replaying
@@ -91,6 +110,8 @@ class Kill:
         what = '' if self.how == 'SIGKILL' else f'{self.how} '
         if self.after is not None:
             return f'{what}at {self.after:g} s'
+        if self.after_applied is not None:
+            return f'{what}after {self.after_applied} numbers applied'
         if self.after_previous is not None:
             return f'{what}{self.after_previous:g} s after the previous strike'
         if self.after_checkpoint is not None and self.delay:
@@ -195,6 +216,47 @@ def joining(domain_id: int) -> Iterator[None]:
                 os.environ[key] = value
 
 
+_environ_lock = threading.Lock()
+_instrumented: dict[str, Path] = {}  # fingerprint of source and keyvars -> rory-instrument's output
+_instrument_lock = threading.Lock()
+
+
+def _fingerprint(program: Program) -> str:
+    """What rory-instrument's output depends on: the source folder's files and the keyvars."""
+    digest = hashlib.sha256()
+    files = sorted(p for p in program.source.rglob('*')
+                   if p.is_file() and '__pycache__' not in p.parts)
+    for path in [*files, program.keyvars]:
+        digest.update(str(path).encode() + b'\0' + path.read_bytes() + b'\0')
+    return digest.hexdigest()
+
+
+def instrument(program: Program, out: Path) -> None:
+    """``rory-instrument`` the program's source folder into ``out``.
+
+    The instrumenter runs once per source and keyvars in this process (0.6 s for the
+    integrator, 1.8 s for the test corpus); later runs get a copy of its output, which is the
+    same bytes (it holds no path of where it was written).
+    """
+    key = _fingerprint(program)
+    with _instrument_lock:
+        done = _instrumented.get(key)
+        if done is None or not done.exists():
+            cache = Path(tempfile.mkdtemp(prefix='rory-instrumented-'))
+            atexit.register(shutil.rmtree, cache, True)
+            done = cache / 'out'
+            subprocess.run(
+                [
+                    sys.executable, '-m', 'rory_instrument', str(program.source),
+                    '--vars', str(program.keyvars), '-o', str(done),
+                ],
+                check=True,
+                capture_output=True,
+            )
+            _instrumented[key] = done
+    shutil.copytree(done, out)
+
+
 def prepare(
     workdir: Path,
     method: str,
@@ -211,14 +273,7 @@ def prepare(
     workdir.mkdir(parents=True, exist_ok=True)
     out = workdir / 'out'
     if not out.exists():
-        subprocess.run(
-            [
-                sys.executable, '-m', 'rory_instrument', str(program.source),
-                '--vars', str(program.keyvars), '-o', str(out),
-            ],
-            check=True,
-            capture_output=True,
-        )
+        instrument(program, out)
     node: dict[str, Any] = {
         'name': program.node,
         'command': ['python', f'out/{program.file}'],
@@ -378,10 +433,13 @@ def run(
     store = workdir / f'store-{method}'
     if store.exists():
         shutil.rmtree(store)
-    env = scenario_env(domain_id)
     # This process joins the run too (the observer): same discovery settings as the others.
-    with joining(domain_id):
-        observer = _Observer(domain_id, program.state_topic)
+    # Runs in threads of one process (independent runs side by side) take turns at
+    # os.environ.
+    with _environ_lock:
+        env = scenario_env(domain_id)
+        with joining(domain_id):
+            observer = _Observer(domain_id, program.state_topic)
     events = EventsFile(store / 'events.jsonl')
     tracker = EventTracker()
     kills_done: list[tuple[str, float]] = []
@@ -415,9 +473,10 @@ def run(
                     if (started is None and observer.state != before
                             and _numbers_applied(observer.state)):
                         started = now  # the first number has been applied
+                    applied = program.applied(observer.state)
                     if pending and started is not None:
                         kill = pending[0]
-                        if tracker.due(kill, started, now, previous) and kill.strike(
+                        if tracker.due(kill, started, now, previous, applied) and kill.strike(
                                 tracker.pid, workdir):
                             kills_done.append((kill.describe(), now))
                             previous = now
@@ -438,9 +497,7 @@ def run(
                     quiet = now - max(observer.state_changed, tracker.running_since)
                     alive = now - observer.state_heard < 2.0
                     settled = quiet > 2.5 and alive if heard else quiet > 8.0
-                    complete = isinstance(observer.state, dict) and (
-                        observer.state.get('count') == count
-                    )
+                    complete = applied == count
                     if published and not pending and tracker.state == 'RUNNING' and (
                         complete or settled
                     ):
@@ -501,12 +558,16 @@ class EventTracker:
                 if ev['new'] == 'RUNNING':
                     self.running_since = time.monotonic()
 
-    def due(self, kill: Kill, started: float, now: float, previous: float | None = None) -> bool:
-        """Whether ``kill`` should strike now (``previous``: when the last strike was)."""
+    def due(self, kill: Kill, started: float, now: float, previous: float | None = None,
+            applied: int = 0) -> bool:
+        """Whether ``kill`` should strike now (``previous``: when the last strike was;
+        ``applied``: numbers the node's last published state shows applied)."""
         if kill.signal and self.pid is None:
             return False
         if kill.after is not None:
             return now - started >= kill.after
+        if kill.after_applied is not None:
+            return applied >= kill.after_applied
         if kill.after_previous is not None:
             return now - (started if previous is None else previous) >= kill.after_previous
         if kill.after_checkpoint is not None:

@@ -10,7 +10,10 @@ subclass holding rclpy Time/Duration values. Per-node settings come from keyvars
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -19,30 +22,62 @@ from rory_eval.harness.scenario import Kill, Program, run
 pytestmark = pytest.mark.ros
 
 CORPUS = Path(__file__).parent / 'corpus'
-STYLES = {
-    'closures': 'closures.py',
-    'functional': 'functional.py',
-    'dataclasses': 'dataclass_state.py',
-    'enum_machine': 'enum_machine.py',
-    'numpy': 'numpy_state.py',
-    'message_list': 'message_list.py',
-    'helper_objects': 'helper_objects.py',
-    'keyword_subscription': 'kwargs_sub.py',
-    'derived_with_time': 'derived.py',
+
+
+def _enum_progress(state: dict[str, Any]) -> int:
+    """Numbers the enum machine applied: those it counted and those it skipped while paused
+    (a pause open at its latest transition: at least up to it)."""
+    applied = state['counted']
+    paused_at = None
+    for n, phase in state['transitions']:
+        if phase == 'paused':
+            paused_at = n
+        elif paused_at is not None:
+            applied += n - paused_at
+            paused_at = None
+    if paused_at is not None:
+        applied = max(applied + 1, paused_at)
+    return int(applied)
+
+
+# Each style's file, and how many numbers its published state shows applied (the kill waits
+# for that many; all of them applied ends the run).
+STYLES: dict[str, tuple[str, Callable[[Any], int]]] = {
+    'closures': ('closures.py', lambda s: len(s['values'])),
+    'functional': ('functional.py', lambda s: s['counter']),
+    'dataclasses': ('dataclass_state.py', lambda s: s['count']),
+    'enum_machine': ('enum_machine.py', _enum_progress),
+    'numpy': ('numpy_state.py', lambda s: int(sum(s['histogram']))),
+    'message_list': ('message_list.py', lambda s: int(s[-1][0]) if s else 0),
+    # The Kalman filter's estimate follows the ramp 1, 2, ...: it rounds to the last number.
+    'helper_objects': ('helper_objects.py', lambda s: round(s['x'][0])),
+    'keyword_subscription': ('kwargs_sub.py', lambda s: len(s['squares'])),
+    'derived_with_time': ('derived.py', lambda s: s['count']),
 }
 COUNT = 150  # 3 s at 50 Hz
 # The node checkpoints every 2 s from its start, about 1 s before the first number arrives:
-# killed 1.8 s into the numbers, it is between its first and second checkpoints.
-KILL_AFTER = 1.8
+# killed after 90 numbers (1.8 s into them), it is between its first and second checkpoints.
+# Timed by the numbers its own state shows applied, not by when this process first heard it:
+# a kill 1.8 s after an observer that heard the node late landed after the last number.
+KILL_AFTER_APPLIED = 90
 
 
 @pytest.mark.parametrize('style', STYLES)
-def test_style_recovers_exactly(style: str, tmp_path: Path, ros_domain: int) -> None:
-    program = Program(CORPUS, CORPUS / 'keyvars.yaml', STYLES[style], '/state', style)
-    common = {'domain_id': ros_domain, 'count': COUNT, 'interval': None, 'pace': None,
-              'program': program}
-    reference = run('rory', (), tmp_path / 'reference', **common)  # type: ignore[arg-type]
-    crashed = run('rory', (Kill(after=KILL_AFTER),), tmp_path / 'crashed', **common)  # type: ignore[arg-type]
+def test_style_recovers_exactly(
+    style: str, tmp_path: Path, ros_domain: int, more_ros_domains: Callable[[], int]
+) -> None:
+    file, progress = STYLES[style]
+    program = Program(CORPUS, CORPUS / 'keyvars.yaml', file, '/state', style, progress=progress)
+    common: dict[str, Any] = {'count': COUNT, 'interval': None, 'pace': None,
+                              'program': program}
+    # The run without a crash and the crashed run are independent (each its own domain and
+    # processes): side by side.
+    with ThreadPoolExecutor(2) as pool:
+        reference_run = pool.submit(run, 'rory', (), tmp_path / 'reference',
+                                    domain_id=more_ros_domains(), **common)
+        crashed_run = pool.submit(run, 'rory', (Kill(after_applied=KILL_AFTER_APPLIED),),
+                                  tmp_path / 'crashed', domain_id=ros_domain, **common)
+        reference, crashed = reference_run.result(), crashed_run.result()
     assert reference.state, 'the node published no state'
     assert len(crashed.recoveries) == 1
     assert crashed.recoveries[0]['replayed'] > 0

@@ -78,6 +78,12 @@ def _numbers_applied(state: Any) -> bool:
     return not (isinstance(state, dict) and state.get('count') == 0)
 
 
+def _last_applied(state: Any) -> int | None:
+    """The last number in an integrator's history (None: no history)."""
+    history = state.get('history') if isinstance(state, dict) else None
+    return history[-1] if isinstance(history, list) and history else None
+
+
 @dataclass(frozen=True)
 class Kill:
     """When to strike the node: exactly one of the time fields is set; ``how`` is the fault.
@@ -497,7 +503,9 @@ def run(
                     quiet = now - max(observer.state_changed, tracker.running_since)
                     alive = now - observer.state_heard < 2.0
                     settled = quiet > 2.5 and alive if heard else quiet > 8.0
-                    complete = applied == count
+                    # Complete: every number applied, or (a node that lost some: restart,
+                    # checkpoint) the last one sent applied, after which nothing more comes.
+                    complete = applied == count or _last_applied(observer.state) == count
                     if published and not pending and tracker.state == 'RUNNING' and (
                         complete or settled
                     ):

@@ -57,11 +57,24 @@ SIMULATOR_TESTS = frozenset({
     'targets/test_lama_local_sim.py',
     'targets/test_navigator_sim.py',
 })
+# Modules whose tests share results computed once per process (functools.cache: a whole
+# route driven through a target's core, e.g. test_graph_slam_core's route_run). Handed out one
+# test at a time, their tests landed on both workers and each computed the same routes (68 s
+# of test time for graph_slam_core's, 38 s in one process): each runs on one worker.
+SHARED_CACHE_TESTS = frozenset({
+    'targets/test_amcl_core.py',
+    'targets/test_graph_slam_core.py',
+    'targets/test_grid_slam_core.py',
+    'targets/test_lama_local_core.py',
+})
 _TESTS = Path(__file__).parent
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
-        if item.path.relative_to(_TESTS).as_posix() in SIMULATOR_TESTS:
+        path = item.path.relative_to(_TESTS).as_posix()
+        if path in SIMULATOR_TESTS:
             item.add_marker(pytest.mark.xdist_group('simulator'))
+        elif path in SHARED_CACHE_TESTS:
+            item.add_marker(pytest.mark.xdist_group(path))

@@ -38,6 +38,13 @@ def more_ros_domains(worker_id: str) -> Callable[[], int]:
     return lambda: _domain(worker_id)
 
 
+@pytest.fixture(scope='module')
+def module_ros_domains(worker_id: str) -> Callable[[], int]:
+    """Domain ids, one a call, for a module-scoped fixture that runs ROS graphs shared by
+    several tests."""
+    return lambda: _domain(worker_id)
+
+
 # Tests that run the MuJoCo simulator with a ROS stack in real time. Two of them side by side
 # starve each other on a 2-core machine (three output-count checks failed that way), so under
 # `make test` (--dist loadgroup) they run one after another on one worker while the other

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from corpus_progress import PROGRESS
 
 from rory_eval.harness.scenario import Kill, Program, run
 
@@ -24,35 +25,18 @@ pytestmark = pytest.mark.ros
 CORPUS = Path(__file__).parent / 'corpus'
 
 
-def _enum_progress(state: dict[str, Any]) -> int:
-    """Numbers the enum machine applied: those it counted and those it skipped while paused
-    (a pause open at its latest transition: at least up to it)."""
-    applied = state['counted']
-    paused_at = None
-    for n, phase in state['transitions']:
-        if phase == 'paused':
-            paused_at = n
-        elif paused_at is not None:
-            applied += n - paused_at
-            paused_at = None
-    if paused_at is not None:
-        applied = max(applied + 1, paused_at)
-    return int(applied)
-
-
-# Each style's file, and how many numbers its published state shows applied (the kill waits
-# for that many; all of them applied ends the run).
-STYLES: dict[str, tuple[str, Callable[[Any], int]]] = {
-    'closures': ('closures.py', lambda s: len(s['values'])),
-    'functional': ('functional.py', lambda s: s['counter']),
-    'dataclasses': ('dataclass_state.py', lambda s: s['count']),
-    'enum_machine': ('enum_machine.py', _enum_progress),
-    'numpy': ('numpy_state.py', lambda s: int(sum(s['histogram']))),
-    'message_list': ('message_list.py', lambda s: int(s[-1][0]) if s else 0),
-    # The Kalman filter's estimate follows the ramp 1, 2, ...: it rounds to the last number.
-    'helper_objects': ('helper_objects.py', lambda s: round(s['x'][0])),
-    'keyword_subscription': ('kwargs_sub.py', lambda s: len(s['squares'])),
-    'derived_with_time': ('derived.py', lambda s: s['count']),
+# Each style's file (corpus_progress.PROGRESS: how many numbers its published state shows
+# applied; the kill waits for that many, all of them applied ends the run).
+STYLES = {
+    'closures': 'closures.py',
+    'functional': 'functional.py',
+    'dataclasses': 'dataclass_state.py',
+    'enum_machine': 'enum_machine.py',
+    'numpy': 'numpy_state.py',
+    'message_list': 'message_list.py',
+    'helper_objects': 'helper_objects.py',
+    'keyword_subscription': 'kwargs_sub.py',
+    'derived_with_time': 'derived.py',
 }
 COUNT = 150  # 3 s at 50 Hz
 # The node checkpoints every 2 s from its start, about 1 s before the first number arrives:
@@ -66,8 +50,9 @@ KILL_AFTER_APPLIED = 90
 def test_style_recovers_exactly(
     style: str, tmp_path: Path, ros_domain: int, more_ros_domains: Callable[[], int]
 ) -> None:
-    file, progress = STYLES[style]
-    program = Program(CORPUS, CORPUS / 'keyvars.yaml', file, '/state', style, progress=progress)
+    file = STYLES[style]
+    program = Program(CORPUS, CORPUS / 'keyvars.yaml', file, '/state', style,
+                      progress=PROGRESS[file])
     common: dict[str, Any] = {'count': COUNT, 'interval': None, 'pace': None,
                               'program': program}
     # The run without a crash and the crashed run are independent (each its own domain and

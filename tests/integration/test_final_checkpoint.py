@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from corpus_progress import PROGRESS
 
 from rory_eval.harness.scenario import Program, run
 from rory_runtime.store import CheckpointStore
@@ -39,7 +40,8 @@ def test_a_clean_stop_checkpoints_classes_of_main(
     file: str, tmp_path: Path, ros_domain: int
 ) -> None:
     node = file.removesuffix('.py')
-    program = Program(CORPUS, CORPUS / 'keyvars.yaml', file, '/state', node)
+    program = Program(CORPUS, CORPUS / 'keyvars.yaml', file, '/state', node,
+                      progress=PROGRESS[file])
     result = run('rory', (), tmp_path, domain_id=ros_domain, count=COUNT, interval=None,
                  pace=None, program=program)
     assert isinstance(result.state, dict), 'the node published no state'

@@ -20,7 +20,6 @@ other logged events (ticks, requests, parameter changes).
 from __future__ import annotations
 
 import enum
-import functools
 import inspect
 import threading
 import time
@@ -291,7 +290,15 @@ class Router:
         self.windows.setdefault(topic, Window(protocol.window_size(inp.spec)))
         self.pending_live.setdefault(topic, [])
         sub.raw = True
-        sub.callback = functools.partial(self.on_live, inp)
+        on_live = self.on_live
+
+        # A function, not a functools.partial: rclpy's executor asks
+        # inspect.iscoroutinefunction of the callback at every message, which is cheapest
+        # for a plain function.
+        def deliver(raw: bytes, info: dict[str, Any]) -> None:
+            on_live(inp, raw, info)
+
+        sub.callback = deliver
         for msg in self.orphans.pop(topic, []):
             self.from_shadow(msg)
         return inp

@@ -191,6 +191,7 @@ class NodeRuntime:
         self.spec = spec
         self.env = env
         self.method = env.method
+        self._logs = env.method.logs  # (read at every message: an attribute, not the property)
         self.init_depth = 0
         self.node: Node | None = None
         self.lock = threading.RLock()
@@ -318,8 +319,9 @@ class NodeRuntime:
             raise RoryError(f'async service callbacks are not supported yet ({srv.srv_name})')
         index = len(self.services)
         self.services.append((srv, callback))
-        srv.callback_group = node_services.HeldUntilRelease(srv.callback_group,
-                                                            lambda: self.released)
+        if not self.released:  # (one made after release serves at once)
+            srv.callback_group = node_services.HeldUntilRelease(srv.callback_group,
+                                                                lambda: self.released)
 
         def logged_request(request: Any, response: Any) -> Any:
             def record() -> None:
@@ -704,7 +706,7 @@ class NodeRuntime:
         received_ns = int(info['received_timestamp'])
         clock = self.clock
         with self.lock:
-            if log and self.method.logs:
+            if log and self._logs:
                 self._log(inp, raw, info, ident)
             self.inflight.busy(inp.topic, ident, received_ns)
             if clock is not None:
@@ -770,6 +772,7 @@ class NodeRuntime:
         overdue: list[Callable[[], Any]] = []
         with self.lock:
             self.open_gates(next_segment)
+            self._unhold_services()
             # Each timer back on its grid; a tick that fell due while the node was down runs
             # once, on the executor, after the release (as an overdue timer in a stalled one).
             self.timers.release(overdue.append)
@@ -789,6 +792,14 @@ class NodeRuntime:
                 executor.create_task(tick)
             else:
                 tick()
+
+    def _unhold_services(self) -> None:
+        """Give each held service its own callback group back: released, the hold would
+        only add a Python call for each of them to every wait of the executor."""
+        assert self.node is not None
+        for srv in self.node.services:
+            if isinstance(srv.callback_group, node_services.HeldUntilRelease):
+                srv.callback_group = srv.callback_group.inner
 
     def open_gates(self, next_segment: int) -> None:
         """Unmute, log from ``next_segment`` on, and apply what live readers hold for the topics

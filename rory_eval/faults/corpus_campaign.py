@@ -1,17 +1,18 @@
 """``make faults``, every input: each corpus node, fast replay, SIGKILLed at random times.
 
 The corpus (``tests/integration/corpus``) is node code as people write it: nine styles of
-subscription-driven nodes, and five whose state depends on more than their messages - a node
-that measures ``dt`` with its clock, one that works in a timer, one tuned by a parameter at run
-time, one commanded through a service, and a lifecycle node managed through
-``~/change_state`` (those last three driven by ``corpus/operator.py``, acting when it sees given
-numbers go by). Each node runs once without a crash (its reference) and once per kill, with
-``fast`` replay, SIGKILLed a random time into its numbers (1..200 at 50 Hz).
+subscription-driven nodes, and six whose state depends on more than their messages - a node that
+measures ``dt`` with its clock, one that works in a timer, one whose 1 Hz timer samples what it
+counted (its ticks must stay on their grid), one tuned by a parameter at run time, one commanded
+through a service, and a lifecycle node managed through ``~/change_state`` (those last three
+driven by ``corpus/operator.py``, acting when it sees given numbers go by). Each node runs once
+without a crash (its reference) and once per kill, with ``fast`` replay, SIGKILLed a random time
+into its numbers (1..200 at 50 Hz).
 
 A crashed run is judged against its reference (:data:`NODES`, ``judge``):
 
 * the nine styles: the final state equals the reference's exactly;
-* the five others read times or take requests whose moment differs from run to run, so the
+* the six others read times or take requests whose moment differs from run to run, so the
   parts that do not are compared exactly (the numbers applied, their sums, the sequence of
   gains, modes and lifecycle states they were counted under), and the rest is checked for
   what replay must keep: the state is what the node's own recorded readings imply, no clock
@@ -109,6 +110,43 @@ def timer_mapper(reference: State | None, crashed: State, lag: int) -> list[str]
     return problems
 
 
+# How late a tick may run on a busy machine (an executor's lateness); the one tick due while
+# the node was down fires at release, later.
+TICK_LATE_NS = 60_000_000
+
+
+def sampler_grid(state: State, count: int = COUNT) -> list[str]:
+    """A 1 Hz timer sampling what the node counted (corpus/sampler.py), as a run without a
+    crash shows it: every number once; each tick saw exactly the numbers applied before it (by
+    the node's own clock); one tick per second on the grid of the first, none skipped or twice,
+    each on time but for at most one (a tick due while the node was down fires once at
+    release, as in a stalled executor)."""
+    problems = [] if state.get('count') == count else [
+        f"count {state.get('count')}, expected {count}"]
+    seen, samples = state['seen_ns'], state['samples']
+    if seen != sorted(seen):
+        problems.append('numbers applied out of clock order')
+    for at, saw in samples:
+        before = sum(1 for s in seen if s <= at)
+        if before != saw:
+            problems.append(f'the tick at {at} saw {saw} numbers; {before} came before it')
+    if not samples:
+        return [*problems, 'no tick']
+    first = samples[0][0]
+    slots = [int((at - first + TICK_LATE_NS) // 1_000_000_000) for at, _ in samples]
+    if slots != list(range(len(slots))):
+        problems.append(f'ticks not one per second on the grid: slots {slots}')
+    late = [at - first - slot * 1_000_000_000 for (at, _), slot in zip(samples, slots, strict=True)]
+    if sum(1 for ns in late if ns > TICK_LATE_NS) > 1:
+        problems.append(f'ticks off the grid by {[round(ns / 1e6) for ns in late]} ms')
+    return problems
+
+
+def sampler(_reference: State | None, crashed: State, _lag: int) -> list[str]:
+    """The sampler's run, judged on its own grid (:func:`sampler_grid`)."""
+    return sampler_grid(crashed)
+
+
 def _runs(field: str, total: str) -> Judge:
     """A node counting under a setting changed from outside: the settings in the order the
     reference had them, and the total those runs imply."""
@@ -155,6 +193,7 @@ NODES: tuple[CorpusNode, ...] = (
     CorpusNode('derived.py', 'derived_with_time', same_state),
     CorpusNode('clock_integrator.py', 'clock_integrator', clock_integrator),
     CorpusNode('timer_mapper.py', 'timer_mapper', timer_mapper),
+    CorpusNode('sampler.py', 'sampler', sampler),
     CorpusNode('gain_controller.py', 'gain_controller', _runs('gains', 'total'),
                ('gain', '20=2.0', 'c10=3.0')),
     CorpusNode('mode_switch.py', 'mode_switch', _runs('runs', 'total'),

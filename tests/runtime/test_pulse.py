@@ -3,10 +3,16 @@ when a checkpoint is due; driven tick by tick with a fake executor and a fake cl
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 
-from rory_runtime.pulse import CheckpointSchedule, Pulse
+import pytest
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node as RclpyNode
+
+from rory_runtime.pulse import PARKED_PROBE_EVERY, CheckpointSchedule, Pulse, executor_parked
 
 SECOND = 1_000_000_000
 
@@ -73,6 +79,111 @@ def test_an_idle_node_is_probed_once_per_look_and_beats_when_the_probe_runs() ->
         assert len(executor.tasks) == 1
         executor.spin_once()
         assert node.beats == expected
+
+
+def _parked_pulse(node: Node, parked: list[bool], asked: list[int]) -> Pulse:
+    def is_parked(thread_id: int) -> bool:
+        asked.append(thread_id)
+        return parked[0]
+
+    return Pulse(lambda: node.executor, node._beat, lambda: node.progress, lambda: node.now_ns,
+                 parked=is_parked)
+
+
+def test_an_idle_executor_parked_in_its_wait_beats_without_a_probe_but_every_2_s() -> None:
+    node = Node()
+    parked, asked = [True], []
+    pulse = _parked_pulse(node, parked, asked)
+    executor = node.executor
+    assert executor is not None
+    pulse.tick()  # progress 0 is news
+    pulse.tick()  # no thread known yet: a probe
+    assert len(executor.tasks) == 1
+    executor.spin_once()  # it runs on this thread: the executor's
+    beats = node.beats
+    posted = 0
+    for _ in range(3 * PARKED_PROBE_EVERY):
+        pulse.tick()
+        posted += len(executor.tasks)
+        executor.spin_once()
+    assert node.beats == beats + 3 * PARKED_PROBE_EVERY  # a beat at every look
+    assert posted == 3  # a probe every PARKED_PROBE_EVERY looks, not one a look
+    assert set(asked) == {threading.get_ident()}  # the thread the probe ran on
+
+
+def test_parked_but_deaf_the_beat_stops() -> None:
+    # Found parked, probed, and the probe never runs: no more beats, as for a stuck executor.
+    node = Node()
+    parked, asked = [True], []
+    pulse = _parked_pulse(node, parked, asked)
+    executor = node.executor
+    assert executor is not None
+    pulse.tick()
+    pulse.tick()
+    executor.spin_once()
+    for _ in range(PARKED_PROBE_EVERY):
+        pulse.tick()
+    assert len(executor.tasks) == 1  # the probe, not run
+    beats = node.beats
+    for _ in range(50):
+        pulse.tick()
+    assert node.beats == beats
+    assert len(executor.tasks) == 1
+
+
+def test_not_parked_and_no_progress_is_probed_at_every_look() -> None:
+    node = Node()
+    parked, asked = [False], []
+    pulse = _parked_pulse(node, parked, asked)
+    executor = node.executor
+    assert executor is not None
+    pulse.tick()
+    pulse.tick()
+    executor.spin_once()
+    for _ in range(5):
+        pulse.tick()
+        assert len(executor.tasks) == 1
+        executor.spin_once()
+
+
+@pytest.mark.ros
+def test_a_real_executor_is_parked_when_idle_and_not_inside_a_callback(
+    context: Context
+) -> None:
+    node = RclpyNode('parked_probe', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    inside, release = threading.Event(), threading.Event()
+    spin_thread: list[int] = []
+
+    def spin() -> None:
+        spin_thread.append(threading.get_ident())
+        executor.spin()
+
+    def stuck() -> None:
+        inside.set()
+        release.wait(10.0)
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 5.0
+        while not (spin_thread and executor_parked(spin_thread[0])):
+            assert time.monotonic() < deadline, 'the idle executor was never found parked'
+            time.sleep(0.01)
+        executor.create_task(stuck)
+        assert inside.wait(5.0)
+        assert not executor_parked(spin_thread[0])  # inside a callback: not parked
+        release.set()
+        deadline = time.monotonic() + 5.0
+        while not executor_parked(spin_thread[0]):
+            assert time.monotonic() < deadline, 'not parked again after the callback'
+            time.sleep(0.01)
+    finally:
+        release.set()
+        executor.shutdown(timeout_sec=2.0)
+        thread.join(5.0)
+        node.destroy_node()
 
 
 def test_a_stuck_executor_stops_the_beat_and_is_not_flooded_with_probes() -> None:

@@ -10,6 +10,7 @@ Example::
         replay: fast              # fast | paced; default: keyvars.yaml's, else fast
         hang_timeout: 10.0        # s without a heartbeat: hung, killed, recovered (null: off)
         start_timeout: 60.0       # s from spawn to the first heartbeat (null: off)
+        hello_timeout: 10.0       # s beating without its HELLO heard: replaced (a new process)
         warm_standby: true        # a started process waits to replace it (default: rory only)
         release_gate:             # after a recovery, hold S4 until /rory/<name>/release is called
           timeout: 60.0           # s; null: wait for the call however long
@@ -91,6 +92,9 @@ class NodeConfig:
     hang_timeout: float | None = 10.0
     # From spawn to the first beat (imports, rclpy.init, the node's constructor).
     start_timeout: float | None = 60.0
+    # A process that beats this long without its HELLO reaching the supervisor cannot reach
+    # it: killed and replaced (watchdog.py, Unheard).
+    hello_timeout: float = 10.0
     # A fork of the zygote that has already joined DDS waits to become the node at its next
     # start (supervisor/standby.py): restart without the ~2 s of DDS discovery.
     warm_standby: bool = False
@@ -321,7 +325,7 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         {
             'name', 'command', 'method', 'checkpoint_interval', 'replay',
             'restart_on_clean_exit', 'env', 'backoff', 'hang_timeout', 'start_timeout',
-            'warm_standby', 'release_gate',
+            'hello_timeout', 'warm_standby', 'release_gate',
         },
     )
     name = f.required('name')
@@ -359,6 +363,7 @@ def _node(path: Path, folder: Path, where: str, obj: Any) -> NodeConfig:
         backoff=_backoff(path, f'{where}.backoff', f.obj.get('backoff') or {}),
         hang_timeout=f.optional_number('hang_timeout', NodeConfig.hang_timeout),
         start_timeout=f.optional_number('start_timeout', NodeConfig.start_timeout),
+        hello_timeout=f.number('hello_timeout', NodeConfig.hello_timeout),
         # Default on for rory only: restart stands for ROS's respawn, and checkpoint and
         # replay for the paper's ablations, all cold starts.
         warm_standby=f.boolean('warm_standby', method == Method.RORY.value),

@@ -200,7 +200,7 @@ class ManagedNode:
         self.poison = PoisonGuard(sup.config.store, cfg.name, self.segments)
         self.slot = slot_path(sup.config.store, cfg.name)
         self.watchdog = Watchdog(self.slot, sup.clock, sup.read_beat, cfg.hang_timeout,
-                                 cfg.start_timeout)
+                                 cfg.start_timeout, cfg.hello_timeout)
         self.resumed = False  # first started from the store of a run that did not stop
         self.standby_for: int | None = None  # the incarnation whose successor is on standby
         self.crashes_total = 0

@@ -19,7 +19,8 @@ from pathlib import Path
 from typing import Literal
 
 HELLO_TIMEOUT = 10.0
-"""Seconds a new process may beat without its HELLO reaching the supervisor. Its runtime sends
+"""Seconds a new process may beat without its HELLO reaching the supervisor, by default (a
+node's ``hello_timeout`` in the supervisor's config). Its runtime sends
 HELLO right after its first callback, on the status socket (status_socket.py), so a beating
 node whose HELLO never arrives is one that cannot reach its supervisor: only a new process
 helps."""
@@ -63,7 +64,8 @@ class Hung:
 
 @dataclass(frozen=True)
 class Unheard:
-    """Beating for longer than :data:`HELLO_TIMEOUT` without its HELLO heard: SIGKILL."""
+    """Beating for longer than its ``hello_timeout`` (:data:`HELLO_TIMEOUT` by default) without
+    its HELLO heard: SIGKILL."""
 
     beating_s: float
 
@@ -105,16 +107,18 @@ class Watchdog:
         read_beat: A slot's last beat on the clock's scale, in ns; None before the first.
         hang_timeout: Seconds without a beat before a process is hung (None: never).
         start_timeout: Seconds a new process may take to beat once (None: no limit).
+        hello_timeout: Seconds a process may beat without its HELLO heard before it is killed.
     """
 
     def __init__(self, slot: Path, clock: Callable[[], float],
                  read_beat: Callable[[Path], int | None], hang_timeout: float | None,
-                 start_timeout: float | None) -> None:
+                 start_timeout: float | None, hello_timeout: float = HELLO_TIMEOUT) -> None:
         self._slot = slot
         self._clock = clock
         self._read_beat = read_beat
         self._hang_timeout = hang_timeout
         self._start_timeout = start_timeout
+        self._hello_timeout = hello_timeout
         self._late_after = (STALL_SUSPECT if hang_timeout is None
                             else min(STALL_SUSPECT, hang_timeout / 2))
         self._process = _Watched(0)
@@ -165,7 +169,7 @@ class Watchdog:
             if process.first_beat_ns is None:
                 process.first_beat_ns = now_ns
             beating_for = now_ns - process.first_beat_ns
-            if not heard and beating_for > HELLO_TIMEOUT * 1e9:
+            if not heard and beating_for > self._hello_timeout * 1e9:
                 beating_s = beating_for / 1e9
                 process.kill_reason = f'unheard (no HELLO after {beating_s:.1f} s of running)'
                 self._killed()

@@ -153,8 +153,8 @@ def test_a_node_whose_status_is_never_heard_is_replaced_then_given_up(
 ) -> None:
     # The node runs and beats, but its HELLO never reaches the supervisor (a wrapper takes the
     # status socket's address out of its environment, so its runtime has nowhere to send):
-    # after HELLO_TIMEOUT it is replaced, and after max_restarts the supervisor gives up rather
-    # than wait forever in STARTING.
+    # after its hello_timeout (2 s here; 10 s by default) it is replaced, and after max_restarts
+    # the supervisor gives up rather than wait forever in STARTING.
     import yaml
 
     workdir = tmp_path.resolve()
@@ -166,6 +166,7 @@ def test_a_node_whose_status_is_never_heard_is_replaced_then_given_up(
     doc = yaml.safe_load(config.read_text())
     doc['nodes'][0]['command'] = ['python', 'unheard.py']
     doc['nodes'][0]['backoff'] = {'max_restarts': 1}
+    doc['nodes'][0]['hello_timeout'] = 2.0
     config.write_text(yaml.safe_dump(doc))
     env = scenario_env(ros_domain)
     log = workdir / 'supervisor.log'
@@ -175,6 +176,6 @@ def test_a_node_whose_status_is_never_heard_is_replaced_then_given_up(
               (workdir / 'store-rory' / 'events.jsonl').read_text().splitlines()]
     assert [e['kind'] for e in events].count('unheard') == 2
     reasons = [e['reason'] for e in events if e['kind'] == 'state' and e['new'] == 'CRASHED']
-    assert all(r.startswith('unheard (no HELLO after 1') for r in reasons), reasons
+    assert reasons and all(r.startswith('unheard (no HELLO after 2.') for r in reasons), reasons
     states = [e['new'] for e in events if e['kind'] == 'state']
     assert states[-3:] == ['FATAL', 'STOPPING', 'STOPPED'], states

@@ -233,6 +233,11 @@ ERRORS = [
     ('nodes:\n' + NODE + '    hang_timeout: -1\n', 'nodes[0].hang_timeout'),
     ('nodes:\n' + NODE + '    hang_timeout: soon\n', 'nodes[0].hang_timeout'),
     ('nodes:\n' + NODE + '    start_timeout: .nan\n', 'nodes[0].start_timeout'),
+    ('nodes:\n' + NODE + '    hello_timeout: 0\n', 'nodes[0].hello_timeout'),
+    ('nodes:\n' + NODE + '    hello_timeout: -3\n', 'nodes[0].hello_timeout'),
+    ('nodes:\n' + NODE + '    hello_timeout: later\n', 'nodes[0].hello_timeout'),
+    ('nodes:\n' + NODE + '    hello_timeout: null\n', 'nodes[0].hello_timeout'),
+    ('nodes:\n' + NODE + '    hello_timeout: .inf\n', 'nodes[0].hello_timeout'),
     ('nodes:\n  - name: a\n    command: []\n', 'nodes[0].command'),
     ('nodes:\n  - name: a\n    command: ""\n', 'nodes[0].command'),
     ('nodes:\n  - name: a\n    command: [x, 1]\n', 'nodes[0].command'),
@@ -420,12 +425,14 @@ def test_safe_state_type_with_trailing_newline_is_refused(tmp_path: Path) -> Non
     assert err.field == 'safe_state[0].type'
 
 
-def test_hang_and_start_timeouts(tmp_path: Path) -> None:
+def test_hang_start_and_hello_timeouts(tmp_path: Path) -> None:
     default = load_config(write(tmp_path, MINIMAL)).nodes[0]
-    assert (default.hang_timeout, default.start_timeout) == (10.0, 60.0)
-    text = 'nodes:\n' + NODE + '    hang_timeout: 2.5\n    start_timeout: null\n'
+    assert (default.hang_timeout, default.start_timeout, default.hello_timeout) == (
+        10.0, 60.0, 10.0)
+    text = ('nodes:\n' + NODE + '    hang_timeout: 2.5\n    start_timeout: null\n'
+            '    hello_timeout: 1.5\n')
     node = load_config(write(tmp_path, text, 'b.yaml')).nodes[0]
-    assert (node.hang_timeout, node.start_timeout) == (2.5, None)
+    assert (node.hang_timeout, node.start_timeout, node.hello_timeout) == (2.5, None, 1.5)
 
 
 @pytest.mark.parametrize('method', ['restart', 'checkpoint', 'replay'])

@@ -129,6 +129,21 @@ def test_a_process_beating_but_never_heard_is_killed_once() -> None:
     assert dog.kill_reason is not None and dog.kill_reason.startswith('unheard (no HELLO after')
 
 
+def test_a_process_never_heard_is_killed_at_its_own_hello_timeout() -> None:
+    beats = Beats()
+    dog = Watchdog(SLOT, beats.clock, beats.read, hang_timeout=5.0, start_timeout=30.0,
+                   hello_timeout=1.5)
+    dog.watch()
+    beats.beat()
+    assert [type(f) for f in dog.check(beats.advance(0.1), heard=False)] == [Beat]
+    beats.beat()
+    assert [type(f) for f in dog.check(beats.advance(1.4), heard=False)] == [Beat]
+    beats.beat()
+    findings = dog.check(beats.advance(0.2), heard=False)
+    unheard = [f for f in findings if isinstance(f, Unheard)]
+    assert len(unheard) == 1 and unheard[0].beating_s == pytest.approx(1.6)
+
+
 def test_a_heard_process_is_never_unheard() -> None:
     dog, beats = _watchdog()
     for _ in range(int(HELLO_TIMEOUT) * 3):

@@ -30,7 +30,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -233,8 +233,20 @@ class SimRun:
         """
         self._once.append((topic, message, subscribers))
 
-    def run(self, *, timeout: float | None = None) -> SimRunResult:
-        """Start everything, wait for the simulator to finish its duration, stop and reap all."""
+    def recorded(self, topic: str) -> list[tuple[float, Any]]:
+        """What was recorded on topic so far, as (monotonic receive time, message); callable
+        while the run runs (from a ``stop_when``)."""
+        rec = self._recordings[topic]
+        return list(zip(list(rec.times), list(rec.messages), strict=False))
+
+    def run(self, *, timeout: float | None = None,
+            stop_when: Callable[[], bool] | None = None) -> SimRunResult:
+        """Start everything, wait for the simulator to finish its duration, stop and reap all.
+
+        ``stop_when``: asked every 0.2 s while the clock runs; once it says True the simulator
+        is stopped early (SIGINT: it finishes its tick and writes its summary and path as at
+        the end of its duration).
+        """
         if self._done:
             msg = 'a SimRun runs once'
             raise SimRunError(msg)
@@ -258,8 +270,13 @@ class SimRun:
                 node.sampler.start()
             recorder.publish_once(deadline, self._check_nodes)
             next_sample = time.monotonic() + _SAMPLE_PERIOD
+            stopping = False
             while sim.poll() is None:
                 self._check_nodes()
+                if stop_when is not None and not stopping and stop_when():
+                    stopping = True
+                    with contextlib.suppress(ProcessLookupError):
+                        sim.send_signal(signal.SIGINT)
                 if time.monotonic() >= next_sample:
                     next_sample += _SAMPLE_PERIOD
                     for node in self._nodes:

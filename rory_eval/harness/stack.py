@@ -151,8 +151,14 @@ class Striker(threading.Thread):
 
 def run_stack(world: str, out: Path, *, domain_id: int, strikes: Sequence[Strike],
               duration: float | None = None,
-              methods: dict[str, str] | None = None) -> StackResult:
-    """One run of the stack; every process is reaped."""
+              methods: dict[str, str] | None = None,
+              settle: float | None = None) -> StackResult:
+    """One run of the stack; every process is reaped.
+
+    ``settle``: end the run this many seconds after it is over (every strike struck, every
+    struck node recovered, and then the navigator said REACHED), not at the end of its
+    duration; None: run the whole duration.
+    """
     from std_msgs.msg import Bool, String
 
     from rory_eval.harness.goals import goal_message
@@ -164,10 +170,13 @@ def run_stack(world: str, out: Path, *, domain_id: int, strikes: Sequence[Strike
     config = stack_config(world, out, methods or {})
     store = out / 'store'
     seconds = duration or NAVIGATION_SECONDS.get(world, 50.0) + 10.0
-    # Each input is read by both nodes and by RORY's ring for each (rory/replay log).
-    readers = 4
+    # Each input is read by both nodes and by RORY's ring (both log: rory, replay). The ring
+    # shares one reader between the nodes that read a topic (ring.py, SharedReader): with the
+    # simulator up the graph shows three readers of /scan and of /odom (counted 2026-11-28).
+    # The four once waited for were never there: the clock waited out the simulator's 30 s
+    # --wait-timeout every run. (A node is RUNNING only once its ring readers matched.)
     run = SimRun(world, out / 'run', domain_id=domain_id, duration=seconds, driver='none',
-                 wait_for={'/scan': readers, '/odom': readers},
+                 wait_for={'/scan': 3, '/odom': 3},
                  sim_args=['--start-delay', '1.0'])
     run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
                                 str(config)])
@@ -178,8 +187,25 @@ def run_stack(world: str, out: Path, *, domain_id: int, strikes: Sequence[Strike
     striker = Striker(out / 'run' / 'sim.log', world, store, strikes)
     striker.start()
     wall_minus_mono = time.time() - time.monotonic()
+    struck = [node for strike in strikes for node in strike.nodes]
+    over_since: list[float] = []
+
+    def over() -> bool:
+        """Every strike struck, every struck node recovered, and the navigator's last word
+        REACHED, all of it for ``settle`` s on end."""
+        back = [e['node'] for e in store_events(store) if e['kind'] == 'recovered']
+        statuses = run.recorded('/navigator/status')
+        if (len(striker.done) < len(struck) or striker.errors
+                or any(back.count(n) < struck.count(n) for n in set(struck))
+                or not statuses or statuses[-1][1].data != 'REACHED'):
+            over_since.clear()
+            return False
+        if not over_since:
+            over_since.append(time.monotonic())
+        return time.monotonic() >= over_since[0] + (settle or 0.0)
+
     try:
-        result = run.run()
+        result = run.run(stop_when=None if settle is None else over)
     finally:
         striker.stop()
     statuses: list[str] = []

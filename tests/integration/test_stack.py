@@ -15,6 +15,9 @@ pytestmark = pytest.mark.ros
 
 ALONE = 8.0  # sim s: AMCL alone
 TOGETHER = 16.0  # sim s: AMCL and the navigator at the same moment
+# The run ends once both strikes are recovered and the navigator has said REACHED for this
+# long (a replan after a recovery comes within a second), not 40 sim s in.
+SETTLE = 5.0
 
 
 def test_a_stack_recovers_one_node_while_the_other_runs_and_two_at_once(
@@ -22,7 +25,7 @@ def test_a_stack_recovers_one_node_while_the_other_runs_and_two_at_once(
 ) -> None:
     result = run_stack('real_room', tmp_path, domain_id=ros_domain, strikes=[
         Strike(ALONE, ('amcl',)), Strike(TOGETHER, ('amcl', 'navigator'))],
-        methods={'amcl': 'rory', 'navigator': 'replay'})
+        methods={'amcl': 'rory', 'navigator': 'replay'}, settle=SETTLE)
     assert not result.errors
     struck = [(node, t) for t, node, _ in result.strikes]
     assert [node for node, _ in struck] == ['amcl', 'amcl', 'navigator']

@@ -44,7 +44,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from rory_eval.harness.process_usage import TreeSampler, TreeUsage, peak_rss_mb, tree_cpu_ticks
 from rory_eval.harness.process_usage import tree_pids as process_tree
-from rory_eval.harness.scenario import joining, scenario_env
+from rory_eval.harness.scenario import _environ_lock, joining, scenario_env
 
 REPO = Path(__file__).resolve().parents[2]
 _CLK_TCK = os.sysconf('SC_CLK_TCK')
@@ -365,7 +365,8 @@ class _Recorder:
                  once: list[tuple[str, Any, int]]) -> None:
         # This process joins the run: the same discovery settings as the others.
         self.context = Context()
-        with joining(domain_id):
+        # Runs side by side in threads of one process take turns at os.environ.
+        with _environ_lock, joining(domain_id):
             rclpy.init(context=self.context, domain_id=domain_id,
                        signal_handler_options=SignalHandlerOptions.NO)
             # Unique: runs side by side in one process (rory_eval.harness.fleet) each have a

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -16,13 +18,19 @@ pytestmark = pytest.mark.ros
 # grid_slam is struck with injected faults in test_target_faults.py.
 @pytest.mark.parametrize(('target', 'world'), [('amcl', 'real_room')])
 def test_killed_target_goes_on_exactly_as_without_the_crash(
-    target: str, world: str, tmp_path: Path, ros_domain: int
+    target: str, world: str, tmp_path: Path, ros_domain: int,
+    more_ros_domains: Callable[[], int]
 ) -> None:
     spec = TARGETS[target]
-    reference, _ = run_under_rory(spec, world, tmp_path / 'reference', domain_id=ros_domain,
-                                  duration=16.0, kill_at=None)
-    crashed, events = run_under_rory(spec, world, tmp_path / 'crash', domain_id=ros_domain,
-                                     duration=16.0, kill_at=6.0)
+    # The run without a crash and the crashed run are independent: side by side, each in its
+    # own domain (their outputs are stamped with sim time, the same in both).
+    with ThreadPoolExecutor(2) as pool:
+        reference_run = pool.submit(run_under_rory, spec, world, tmp_path / 'reference',
+                                    domain_id=ros_domain, duration=16.0, kill_at=None)
+        crashed_run = pool.submit(run_under_rory, spec, world, tmp_path / 'crash',
+                                  domain_id=more_ros_domains(), duration=16.0, kill_at=6.0)
+        reference, _ = reference_run.result()
+        crashed, events = crashed_run.result()
     assert [e['code'] for e in events if e['kind'] == 'exit'] == [-9]
     result = compare(reference, crashed, events)
     assert result.recovered_ms is not None

@@ -8,13 +8,12 @@ order.
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import pytest
+from side_by_side import SideBySide, side_by_side
 
 from rory_eval.harness.scenario import Kill, ScenarioResult, run
 
@@ -24,38 +23,6 @@ COUNT = 300  # 6 s at 50 Hz: live traffic goes on after release, so the handover
 # Without a crash there is no handover: 3 s of numbers, past the node's first 1 Hz tick after
 # its release (where replay and rory retire the shadow reader).
 NO_CRASH_COUNT = 150
-
-
-class _SideBySide:
-    """Independent runs (each its own domain, folder and processes) started together on first
-    use, each test waiting for its own; every run reaps its processes however it ends."""
-
-    def __init__(self, runs: dict[str, Callable[[int, Path], ScenarioResult]],
-                 domains: Callable[[], int], folder: Path) -> None:
-        self._runs, self._domains, self._folder = runs, domains, folder
-        self._pool: ThreadPoolExecutor | None = None
-        self._futures: dict[str, Future[ScenarioResult]] = {}
-
-    def __getitem__(self, key: str) -> ScenarioResult:
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(len(self._runs))
-            self._futures = {k: self._pool.submit(r, self._domains(), self._folder / k)
-                             for k, r in self._runs.items()}
-        return self._futures[key].result()
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-
-
-@contextlib.contextmanager
-def _side_by_side(runs: dict[str, Callable[[int, Path], ScenarioResult]],
-                  domains: Callable[[], int], folder: Path) -> Iterator[_SideBySide]:
-    together = _SideBySide(runs, domains, folder)
-    try:
-        yield together
-    finally:
-        together.close()
 
 
 def _exits(result: ScenarioResult) -> list[int]:
@@ -175,19 +142,21 @@ BASELINES = ('restart', 'checkpoint')
 @pytest.fixture(scope='module')
 def baseline_runs(
     module_ros_domains: Callable[[], int], tmp_path_factory: pytest.TempPathFactory
-) -> Iterator[_SideBySide]:
+) -> Iterator[SideBySide[ScenarioResult]]:
     """Each baseline's crashed run, the two side by side."""
     def crashed(method: str) -> Callable[[int, Path], ScenarioResult]:
         return lambda domain, folder: run(method, (Kill(after=3.0),), folder,
                                           domain_id=domain, count=COUNT)
-    with _side_by_side({m: crashed(m) for m in BASELINES}, module_ros_domains,
+    with side_by_side({m: crashed(m) for m in BASELINES}, module_ros_domains,
                        tmp_path_factory.mktemp('baselines')) as runs:
         yield runs
 
 
 @pytest.mark.xdist_group('recovery_exact_baselines')  # one worker: the runs are shared
 @pytest.mark.parametrize('method', BASELINES)
-def test_baselines_visibly_lose_state(method: str, baseline_runs: _SideBySide) -> None:
+def test_baselines_visibly_lose_state(
+    method: str, baseline_runs: SideBySide[ScenarioResult]
+) -> None:
     result = baseline_runs[method]
     assert len(result.recovery_ms) == 1
     assert not result.correct
@@ -211,12 +180,12 @@ METHODS = ('restart', 'checkpoint', 'replay', 'rory')
 @pytest.fixture(scope='module')
 def no_crash_runs(
     module_ros_domains: Callable[[], int], tmp_path_factory: pytest.TempPathFactory
-) -> Iterator[_SideBySide]:
+) -> Iterator[SideBySide[ScenarioResult]]:
     """Each method's run without a crash, the four side by side."""
     def quiet(method: str) -> Callable[[int, Path], ScenarioResult]:
         return lambda domain, folder: run(method, (), folder, domain_id=domain,
                                           count=NO_CRASH_COUNT)
-    with _side_by_side({m: quiet(m) for m in METHODS}, module_ros_domains,
+    with side_by_side({m: quiet(m) for m in METHODS}, module_ros_domains,
                        tmp_path_factory.mktemp('no-crash')) as runs:
         yield runs
 
@@ -224,7 +193,7 @@ def no_crash_runs(
 @pytest.mark.xdist_group('recovery_exact_no_crash')  # one worker: the runs are shared
 @pytest.mark.parametrize('method', METHODS)
 def test_no_crash_run_is_exact_under_every_method(
-    method: str, no_crash_runs: _SideBySide
+    method: str, no_crash_runs: SideBySide[ScenarioResult]
 ) -> None:
     result = no_crash_runs[method]
     assert result.recovery_ms == []

@@ -84,7 +84,7 @@ class SupervisorPorts(Protocol):
         ...
 
     @property
-    def events(self) -> queue.Queue[Any]:
+    def events(self) -> queue.SimpleQueue[Any]:
         """The main loop's queue (child exits, releases, gate calls)."""
         ...
 

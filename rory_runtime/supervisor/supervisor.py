@@ -976,7 +976,10 @@ class Supervisor:
         # has no participant and no thread of its own yet.
         self.launcher: Launcher = launcher or ForkLauncher(None)
         self._own_launcher = launcher is None
-        self.events: queue.Queue[Event] = queue.Queue()
+        # A SimpleQueue: put is safe from the signal handler (a queue.Queue's lock could be
+        # held by the interrupted get), and get(timeout) waits in C, not in a Python Condition
+        # (the main loop wakes several times a second at rest: docs/performance.md).
+        self.events: queue.SimpleQueue[Event] = queue.SimpleQueue()
         self.nodes: dict[str, ManagedNode] = {}
         self._ring_ctx: RingContext | None = None
         self._inbox: StatusInbox | None = None

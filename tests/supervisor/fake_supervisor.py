@@ -235,7 +235,7 @@ class FakeSupervisor:
         self.clock = FakeClock()
         self.launcher = FakeLauncher()
         self.events_log = FakeEvents(self.clock)
-        self.events: queue.Queue[Any] = queue.Queue()
+        self.events: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.safety = FakeSafety()
         self.ros_node = FakeRosNode()
         self.channel = protocol.DEFAULT_CHANNEL

@@ -9,19 +9,23 @@ campaign judges it without a reference (rory_eval/faults/corpus_campaign.py): ev
 once and in order, the state what its own readings and settings imply, no reading or tick
 taken from the replay's time instead of the recorded one (which shows as a lag or a gap of
 the time since the checkpoint, here about 1 s). The campaign adds the no-crash run and
-random kill times.
+random kill times. The five crashed runs are independent (each its own domain, folder and
+processes) and run three at a time (side_by_side.py); each test judges its own node's run.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from side_by_side import SideBySide, side_by_side
 
 from rory_eval.faults.corpus_campaign import NODES, judge_run, run_node
 from rory_eval.harness.scenario import Kill, ScenarioResult
 
-pytestmark = pytest.mark.ros
+# The runs are shared: the module's tests on one xdist worker.
+pytestmark = [pytest.mark.ros, pytest.mark.xdist_group('corpus_time')]
 
 BY_NAME = {node.name: node for node in NODES}
 # The operators take their steps in order (corpus/operator.py): the first at numbers 20-30,
@@ -34,9 +38,28 @@ BY_NAME = {node.name: node for node in NODES}
 KILL = Kill(after_checkpoint=1, delay=1.0)
 
 
-def _crashed(name: str, tmp_path: Path, domain: int) -> ScenarioResult:
+NAMES = ('clock_integrator', 'timer_mapper', 'gain_controller', 'mode_switch',
+         'lifecycle_counter')
+# A run takes about a third of a core (supervisor, node, standby, publisher, operator).
+AT_ONCE = 3
+
+
+@pytest.fixture(scope='module')
+def crashed_runs(
+    module_ros_domains: Callable[[], int], tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[SideBySide[ScenarioResult]]:
+    """Each node's crashed run, three at a time (independent runs: each its own domain, folder
+    and processes)."""
+    def crashed(name: str) -> Callable[[int, Path], ScenarioResult]:
+        return lambda domain, folder: run_node(BY_NAME[name], (KILL,), folder, domain)
+    with side_by_side({name: crashed(name) for name in NAMES}, module_ros_domains,
+                      tmp_path_factory.mktemp('corpus-time'), AT_ONCE) as runs:
+        yield runs
+
+
+def _crashed(name: str, runs: SideBySide[ScenarioResult]) -> ScenarioResult:
     node = BY_NAME[name]
-    result = run_node(node, (KILL,), tmp_path, domain)
+    result = runs[name]
     assert judge_run(node, None, result) == []
     assert result.recoveries[0]['replayed'] > 0
     return result
@@ -50,25 +73,25 @@ def _restored(result: ScenarioResult) -> dict[str, object]:
 
 
 def test_a_node_reading_its_clock_recovers_with_the_times_it_read(
-    tmp_path: Path, ros_domain: int
+    crashed_runs: SideBySide[ScenarioResult]
 ) -> None:
-    result = _crashed('clock_integrator', tmp_path, ros_domain)
+    result = _crashed('clock_integrator', crashed_runs)
     assert result.recoveries[0]['clock_fallbacks'] is not None
 
 
 def test_a_node_working_in_a_timer_recovers_every_tick(
-    tmp_path: Path, ros_domain: int
+    crashed_runs: SideBySide[ScenarioResult]
 ) -> None:
-    result = _crashed('timer_mapper', tmp_path, ros_domain)
+    result = _crashed('timer_mapper', crashed_runs)
     assert result.recoveries[0]['ticks_replayed'] > 0
 
 
 def test_a_node_tuned_at_run_time_keeps_its_parameters_through_a_crash(
-    tmp_path: Path, ros_domain: int
+    crashed_runs: SideBySide[ScenarioResult]
 ) -> None:
     # The gain set to 2 comes back from the checkpoint if it was set before it, else from the
     # log; the change to 3 always from the log.
-    result = _crashed('gain_controller', tmp_path, ros_domain)
+    result = _crashed('gain_controller', crashed_runs)
     assert isinstance(result.state, dict)
     assert [gain for gain, _ in result.state['gains']] == [1.0, 2.0, 3.0]
     from_checkpoint = _restored(result)['parameters']
@@ -77,9 +100,9 @@ def test_a_node_tuned_at_run_time_keeps_its_parameters_through_a_crash(
 
 
 def test_a_node_commanded_by_a_service_keeps_its_commands_through_a_crash(
-    tmp_path: Path, ros_domain: int
+    crashed_runs: SideBySide[ScenarioResult]
 ) -> None:
-    result = _crashed('mode_switch', tmp_path, ros_domain)
+    result = _crashed('mode_switch', crashed_runs)
     assert isinstance(result.state, dict)
     assert [factor for factor, _ in result.state['runs']] == [1, 2, 1]
     assert result.state['requests'] == 2
@@ -88,11 +111,11 @@ def test_a_node_commanded_by_a_service_keeps_its_commands_through_a_crash(
 
 
 def test_a_lifecycle_node_comes_back_through_its_callbacks(
-    tmp_path: Path, ros_domain: int
+    crashed_runs: SideBySide[ScenarioResult]
 ) -> None:
     # Back to the checkpoint's state through on_configure (which subscribes) and, if it was
     # active then, on_activate; the transitions after it are replayed from the log.
-    result = _crashed('lifecycle_counter', tmp_path, ros_domain)
+    result = _crashed('lifecycle_counter', crashed_runs)
     assert isinstance(result.state, dict)
     assert [counted for counted, _ in result.state['runs']] == [0, 1, 0, 1]
     at_checkpoint = _restored(result)['lifecycle']

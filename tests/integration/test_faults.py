@@ -4,25 +4,58 @@ from __future__ import annotations
 
 import base64
 import json
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 from rclpy.serialization import deserialize_message
+from side_by_side import SideBySide, side_by_side
 from std_msgs.msg import Int64
 
-from rory_eval.harness.scenario import Program, run
+from rory_eval.faults.fault_campaign import FLAKY_DIR
+from rory_eval.harness.scenario import Kill, Program, ScenarioResult, run
 
-pytestmark = pytest.mark.ros
+# The three runs are shared (side_by_side.py): the module's tests on one xdist worker.
+pytestmark = [pytest.mark.ros, pytest.mark.xdist_group('faults')]
 
 FAULTS = Path(__file__).parent / 'faults'
 
 
-def test_poison_message_is_quarantined_and_the_node_goes_on(
-    tmp_path: Path, ros_domain: int
-) -> None:
+def _poison(domain: int, folder: Path) -> ScenarioResult:
     program = Program(FAULTS, FAULTS / 'keyvars.yaml', 'poison.py', '/state', 'fragile')
-    result = run('rory', (), tmp_path, domain_id=ros_domain, count=150, program=program,
-                 timeout=120)
+    return run('rory', (), folder, domain_id=domain, count=150, program=program, timeout=120)
+
+
+def _hang(domain: int, folder: Path) -> ScenarioResult:
+    program = Program(FAULTS, FAULTS / 'keyvars.yaml', 'hang.py', '/state', 'stuck',
+                      settings=(('hang_timeout', 1.5),))
+    return run('rory', (), folder, domain_id=domain, count=150, program=program, timeout=120)
+
+
+def _long_hang(domain: int, folder: Path) -> ScenarioResult:
+    # The flaky integrator (queue depth 100, so its ring keeps 116 messages) hangs once at
+    # 50 Hz; hang_timeout 4 s lets ~200 numbers arrive before the kill. The ring starts taking
+    # them when the heartbeat is 0.6 s late, so the replacement gets every one.
+    program = Program(FLAKY_DIR, FLAKY_DIR / 'keyvars.yaml', 'flaky_integrator.py',
+                      '/integrator/state', 'integrator', settings=(('hang_timeout', 4.0),))
+    return run('rory', (Kill(after=1.5, how='hang'),), folder, domain_id=domain, count=400,
+               rate=50.0, interval=1.0, pace='fast', program=program, timeout=120)
+
+
+@pytest.fixture(scope='module')
+def fault_runs(
+    module_ros_domains: Callable[[], int], tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[SideBySide[ScenarioResult]]:
+    """The three runs side by side (independent: each its own domain, folder and processes)."""
+    with side_by_side({'poison': _poison, 'hang': _hang, 'long_hang': _long_hang},
+                      module_ros_domains, tmp_path_factory.mktemp('faults')) as runs:
+        yield runs
+
+
+def test_poison_message_is_quarantined_and_the_node_goes_on(
+    fault_runs: SideBySide[ScenarioResult]
+) -> None:
+    result = fault_runs['poison']
     kinds = [e['kind'] for e in result.events]
     exits = [e for e in result.events if e['kind'] == 'exit']
     # 1: dies live on 77; 2: dies again when the replay reaches 77 -> quarantined; 3: goes on
@@ -43,12 +76,9 @@ def test_poison_message_is_quarantined_and_the_node_goes_on(
 
 
 def test_a_hung_node_is_killed_recovered_and_its_hanging_message_quarantined(
-    tmp_path: Path, ros_domain: int
+    fault_runs: SideBySide[ScenarioResult]
 ) -> None:
-    program = Program(FAULTS, FAULTS / 'keyvars.yaml', 'hang.py', '/state', 'stuck',
-                      settings=(('hang_timeout', 1.5),))
-    result = run('rory', (), tmp_path, domain_id=ros_domain, count=150, program=program,
-                 timeout=120)
+    result = fault_runs['hang']
     hangs = [e for e in result.events if e['kind'] == 'hang']
     # 1: hangs live on 77; 2: hangs again when the replay reaches 77 -> quarantined; 3: goes on
     assert len(hangs) == 2, result.log[-3000:]
@@ -65,17 +95,11 @@ def test_a_hung_node_is_killed_recovered_and_its_hanging_message_quarantined(
     assert 'in on_number' in result.log, result.log[-3000:]
 
 
-def test_a_hang_longer_than_the_ring_holds_loses_nothing(tmp_path: Path, ros_domain: int) -> None:
-    # The flaky integrator (queue depth 100, so its ring keeps 116 messages) hangs once at
-    # 50 Hz; hang_timeout 4 s lets ~200 numbers arrive before the kill. The ring starts taking
-    # them when the heartbeat is 0.6 s late, so the replacement gets every one.
-    from rory_eval.faults.fault_campaign import FLAKY_DIR
-    from rory_eval.harness.scenario import Kill
-
-    program = Program(FLAKY_DIR, FLAKY_DIR / 'keyvars.yaml', 'flaky_integrator.py',
-                      '/integrator/state', 'integrator', settings=(('hang_timeout', 4.0),))
-    result = run('rory', (Kill(after=1.5, how='hang'),), tmp_path, domain_id=ros_domain,
-                 count=400, rate=50.0, interval=1.0, pace='fast', program=program, timeout=120)
+def test_a_hang_longer_than_the_ring_holds_loses_nothing(
+    fault_runs: SideBySide[ScenarioResult]
+) -> None:
+    # (_long_hang: a hang of the flaky integrator, found after hang_timeout 4 s.)
+    result = fault_runs['long_hang']
     hangs = [e for e in result.events if e['kind'] == 'hang']
     assert len(hangs) == 1 and hangs[0]['stalled_s'] > 4.0, result.log[-3000:]
     assert 'RORY keeps its inputs from now on' in result.log

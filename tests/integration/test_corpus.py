@@ -5,22 +5,24 @@ The corpus (tests/integration/corpus) covers lambdas and closures as callbacks, 
 as functions with module globals, dataclasses, an Enum state machine, numpy arrays, a list of
 ROS messages, state inside helper objects (attribute paths), keyword-argument
 create_subscription with an (msg, info) callback, and a node class deriving from another Node
-subclass holding rclpy Time/Duration values. Per-node settings come from keyvars.yaml.
+subclass holding rclpy Time/Duration values. Per-node settings come from keyvars.yaml. Each
+style's two runs, and the styles, are independent runs: four at a time (side_by_side.py).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from corpus_progress import PROGRESS
+from side_by_side import SideBySide, side_by_side
 
-from rory_eval.harness.scenario import Kill, Program, run
+from rory_eval.harness.scenario import Kill, Program, ScenarioResult, run
 
-pytestmark = pytest.mark.ros
+# The runs are shared (side_by_side.py): the module's tests on one xdist worker.
+pytestmark = [pytest.mark.ros, pytest.mark.xdist_group('corpus')]
 
 CORPUS = Path(__file__).parent / 'corpus'
 
@@ -46,23 +48,39 @@ COUNT = 150  # 3 s at 50 Hz
 KILL_AFTER_APPLIED = 90
 
 
-@pytest.mark.parametrize('style', STYLES)
-def test_style_recovers_exactly(
-    style: str, tmp_path: Path, ros_domain: int, more_ros_domains: Callable[[], int]
-) -> None:
+# Each run takes about a third of a core (supervisor, node, standby, publisher): four at a
+# time, two styles' pairs, leave the other xdist worker its share of the two cores.
+AT_ONCE = 4
+
+
+def _program(style: str) -> Program:
     file = STYLES[style]
-    program = Program(CORPUS, CORPUS / 'keyvars.yaml', file, '/state', style,
-                      progress=PROGRESS[file])
-    common: dict[str, Any] = {'count': COUNT, 'interval': None, 'pace': None,
-                              'program': program}
-    # The run without a crash and the crashed run are independent (each its own domain and
-    # processes): side by side.
-    with ThreadPoolExecutor(2) as pool:
-        reference_run = pool.submit(run, 'rory', (), tmp_path / 'reference',
-                                    domain_id=more_ros_domains(), **common)
-        crashed_run = pool.submit(run, 'rory', (Kill(after_applied=KILL_AFTER_APPLIED),),
-                                  tmp_path / 'crashed', domain_id=ros_domain, **common)
-        reference, crashed = reference_run.result(), crashed_run.result()
+    return Program(CORPUS, CORPUS / 'keyvars.yaml', file, '/state', style,
+                   progress=PROGRESS[file])
+
+
+@pytest.fixture(scope='module')
+def style_runs(
+    module_ros_domains: Callable[[], int], tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[SideBySide[ScenarioResult]]:
+    """Each style's run without a crash and its crashed run: independent runs (each its own
+    domain, folder and processes), four at a time, a style's two together."""
+    def style_run(style: str, kills: tuple[Kill, ...]) -> Callable[[int, Path], ScenarioResult]:
+        common: dict[str, Any] = {'count': COUNT, 'interval': None, 'pace': None,
+                                  'program': _program(style)}
+        return lambda domain, folder: run('rory', kills, folder, domain_id=domain, **common)
+    runs = {}
+    for style in STYLES:
+        runs[f'{style}-reference'] = style_run(style, ())
+        runs[f'{style}-crashed'] = style_run(style, (Kill(after_applied=KILL_AFTER_APPLIED),))
+    with side_by_side(runs, module_ros_domains, tmp_path_factory.mktemp('corpus'),
+                      AT_ONCE) as together:
+        yield together
+
+
+@pytest.mark.parametrize('style', STYLES)
+def test_style_recovers_exactly(style: str, style_runs: SideBySide[ScenarioResult]) -> None:
+    reference, crashed = style_runs[f'{style}-reference'], style_runs[f'{style}-crashed']
     assert reference.state, 'the node published no state'
     assert len(crashed.recoveries) == 1
     assert crashed.recoveries[0]['replayed'] > 0

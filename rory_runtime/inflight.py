@@ -54,6 +54,9 @@ def slot_path(store: Path, node_id: str) -> Path:
     return store / node_id / 'inflight'
 
 
+_IDLE = _HEAD.pack(_MAGIC, _VERSION, 0, 0, 0, 0, 0, 0)[:8]  # the slot's first 8 bytes, idle
+
+
 class InFlightSlot:
     """The node's side: mark a message busy before its callback, idle after."""
 
@@ -83,7 +86,7 @@ class InFlightSlot:
 
     def idle(self) -> None:
         """No callback is running on a message."""
-        self._map[:8] = _HEAD.pack(_MAGIC, _VERSION, 0, 0, 0, 0, 0, 0)[:8]
+        self._map[:8] = _IDLE
 
     def beat(self) -> None:
         """The executor is alive (pulse.py decides when)."""

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any, Final, Protocol, cast
 
 from rclpy.subscription import Subscription
+from rclpy.type_support import check_for_type_support
 
 from . import protocol
 from .errors import RoryError
@@ -270,6 +271,7 @@ class Router:
         if inspect.iscoroutinefunction(callback):
             raise RoryError(f'async subscription callbacks are not supported yet ({topic})')
         msg_type = cast(type, sub.msg_type)
+        check_for_type_support(msg_type)  # once: NodeRuntime._apply deserialises without it
         type_name = type_name_of(msg_type)
         if released:
             phase = TopicPhase.LIVE
@@ -380,7 +382,7 @@ class Router:
             # e.g. a transient-local publisher re-sending what the checkpoint already holds
             self.stats['duplicates'] += 1
             return
-        if self._is_quarantined(inp.topic, ident):
+        if self._quarantined and self._is_quarantined(inp.topic, ident):
             return
         self._apply(inp, raw, info, ident, log=True)
 

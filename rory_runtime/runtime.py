@@ -28,7 +28,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -38,13 +38,14 @@ from rcl_interfaces.srv import SetParameters, SetParametersAtomically
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
-from rclpy.serialization import deserialize_message
 from rclpy.service import Service
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
+from rosbags.interfaces import Qos
 from std_msgs.msg import UInt8MultiArray
 
 from . import (
@@ -218,6 +219,7 @@ class NodeRuntime:
         self._set_parameters_atomically: Callable[[list[Parameter]], SetParametersResult] | None
         self._set_parameters_atomically = None
         self.publishers: list[Publisher] = []
+        self._qos_lookups: dict[str, Callable[[], Sequence[Qos]]] = {}
         self.stats = {'applied': 0, 'replayed': 0, 'duplicates': 0, 'muted': 0, 'quarantined': 0,
                       'passed_by_relay': 0, 'ticks': 0, 'ticks_replayed': 0,
                       'clock_fallbacks': 0, 'parameter_changes': 0,
@@ -702,7 +704,9 @@ class NodeRuntime:
     ) -> None:
         """Run the user's callback on one message under the lock; ``log``: a live message,
         written to the log first; else a replayed one, whose clock ``readings`` it gets."""
-        msg = raw if inp.user_raw else deserialize_message(raw, inp.msg_type)
+        # rclpy's deserialize_message less its type-support check, made once at adoption
+        # (Router.adopt): a Python call fewer on every message.
+        msg = raw if inp.user_raw else _rclpy.rclpy_deserialize(raw, inp.msg_type)
         received_ns = int(info['received_timestamp'])
         clock = self.clock
         with self.lock:
@@ -732,14 +736,22 @@ class NodeRuntime:
 
     def _log(self, inp: Input, raw: bytes, info: dict[str, Any], ident: MessageId) -> None:
         writer = self.checkpointer.segment()
-        node = self.node
         try:
             writer.write(
                 inp.topic, inp.type_name, int(info['received_timestamp']), ident[0], ident[1], raw,
-                offered_qos=None if node is None else lambda: offered_qos(node, inp.topic),
+                offered_qos=self._offered_qos_of(inp.topic),
             )
         except LogError as err:
             self._error(f'cannot log a message of {inp.topic}: {err}')
+
+    def _offered_qos_of(self, topic: str) -> Callable[[], Sequence[Qos]] | None:
+        """What asks the graph for ``topic``'s offered QoS when a segment first logs it (made
+        once per topic, not at every message)."""
+        lookup = self._qos_lookups.get(topic)
+        if lookup is None and self.node is not None:
+            lookup = functools.partial(offered_qos, self.node, topic)
+            self._qos_lookups[topic] = lookup
+        return lookup
 
     def _write_record(self, record: str, at_ns: int, value_ns: int, detail: int,
                       data: bytes | None = None,

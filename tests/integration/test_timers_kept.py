@@ -2,7 +2,8 @@
 "Timers and the clock"): a talker in the shape of ros2/demos' deadline demo
 (corpus/pause_talker.py: a callback cancels the publish timer and makes a one-shot pause timer,
 whose expiry says the count, resets the publish timer and destroys itself), SIGKILLed inside a
-pause, before and after a checkpoint took the pause timer.
+pause, before and after a checkpoint took the pause timer (the two runs side by side, each
+test judging its own).
 
 What it said on /said, before and after the crash, must be what a run without a crash says:
 every count once and in order (nothing said twice, none skipped), no saying of the cancelled
@@ -20,6 +21,7 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,12 +32,14 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile
 from rclpy.signals import SignalHandlerOptions
+from side_by_side import SideBySide, side_by_side
 from std_msgs.msg import String
 from supervision import events, wait_for
 
 from rory_eval.harness.scenario import (
     Kill,
     Program,
+    _environ_lock,
     child_process,
     joining,
     prepare,
@@ -56,7 +60,8 @@ class _Listener:
 
     def __init__(self, domain: int) -> None:
         self.context = Context()
-        with joining(domain):
+        # Runs side by side in threads of one process take turns at os.environ.
+        with _environ_lock, joining(domain):
             rclpy.init(context=self.context, domain_id=domain,
                        signal_handler_options=SignalHandlerOptions.NO)
             self.node = Node('said_listener', context=self.context)
@@ -130,12 +135,28 @@ def test_the_judge_takes_a_talk_without_a_crash_and_refuses_the_two_failures() -
     assert _judge(['1 tick running', '2 tick paused'])
 
 
-@pytest.mark.parametrize('into_pause', [0.05, 0.45], ids=['before-a-checkpoint-took-it',
-                                                           'after-a-checkpoint-took-it'])
+INTO_PAUSE = {'before-a-checkpoint-took-it': 0.05, 'after-a-checkpoint-took-it': 0.45}
+
+
+@pytest.fixture(scope='module')
+def talker_runs(
+    module_ros_domains: Callable[[], int], tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[SideBySide[tuple[list[str], list[Any]]]]:
+    """Both kills' runs side by side (independent: each its own domain, folder, processes and
+    listener)."""
+    def killed(into_pause: float) -> Callable[[int, Path], tuple[list[str], list[Any]]]:
+        return lambda domain, folder: _run(folder, domain, into_pause)
+    with side_by_side({k: killed(v) for k, v in INTO_PAUSE.items()}, module_ros_domains,
+                      tmp_path_factory.mktemp('talker')) as runs:
+        yield runs
+
+
+@pytest.mark.xdist_group('timers_kept_talker')  # one worker: the runs are shared
+@pytest.mark.parametrize('into_pause', INTO_PAUSE)
 def test_killed_inside_a_pause_the_talker_says_what_it_would_have(
-    tmp_path: Path, ros_domain: int, into_pause: float
+    into_pause: str, talker_runs: SideBySide[tuple[list[str], list[Any]]]
 ) -> None:
-    said, log = _run(tmp_path, ros_domain, into_pause)
+    said, log = talker_runs[into_pause]
     assert _judge(said) == [], said
     recovered = [e for e in log if e['kind'] == 'recovered']
     assert len(recovered) == 1

@@ -29,7 +29,7 @@ import random
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -231,11 +231,12 @@ def judge_run(node: CorpusNode, reference: State | None, result: ScenarioResult)
     return problems
 
 
-def kill_times(seed: int, kills: int) -> Iterator[float]:
-    """Seconds into the numbers to kill at, drawn uniformly over the stream."""
-    rng = random.Random(seed)
-    while True:
-        yield from (round(rng.uniform(0.2, 3.6), 2) for _ in range(kills))
+def kill_times(seed: int, node: str, kills: int) -> list[float]:
+    """Seconds into the numbers to kill ``node`` at, drawn uniformly over the stream from the
+    seed and the node's name: a node added to the corpus, or left out with ``--nodes``, does
+    not move the others' kills."""
+    rng = random.Random(f'{seed}/{node}')
+    return [round(rng.uniform(0.2, 3.6), 2) for _ in range(kills)]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -254,7 +255,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.kills < 1:
         parser.error('--kills must be at least 1')
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='rory-corpus-'))
-    times = kill_times(args.seed, args.kills)
     rows: list[tuple[str, int, int]] = []
     for node in (n for n in NODES if not args.nodes or n.name in args.nodes):
         reference = run_node(node, (), root / node.name / 'reference', args.domain)
@@ -264,8 +264,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if problems_ref:
             print(f'{node.name}: the no-crash run itself is wrong: {problems_ref}', flush=True)
         exact = 0
-        for i in range(args.kills):
-            at = next(times)
+        for i, at in enumerate(kill_times(args.seed, node.name, args.kills)):
             workdir = root / node.name / f'kill{i}'
             result = run_node(node, (Kill(after=at),), workdir, args.domain)
             problems = judge_run(node, ref_state, result)

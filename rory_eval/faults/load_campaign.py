@@ -523,9 +523,9 @@ def part_three(options: Options, root: Path, domain: int) -> Iterator[RunRecord]
 def part_four(options: Options, root: Path, domain: int) -> Iterator[RunRecord]:
     """Per corpus node: its reference and more runs without a fault judged against it, then
     SIGKILLs at corpus_campaign.kill_times."""
-    times = corpus_campaign.kill_times(options.seed, options.kills)
     for node in corpus_campaign.NODES:
         if not options.nodes or node.name in options.nodes:
+            times = iter(corpus_campaign.kill_times(options.seed, node.name, options.kills))
             yield from _corpus_runs(options, node, root / node.name, domain, times)
 
 

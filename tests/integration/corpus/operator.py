@@ -7,6 +7,11 @@ the first checkpoint falls among the numbers):
     cK=VALUE   at the K-th number seen after both the node's first checkpoint (read on
                /rory/events) and the step before, so that it lands after that checkpoint
 
+A careful client: it sends a step's request only once the one before was answered, and sends
+a request again when no response came within RESEND_AFTER (a request sent while the node's
+process was dead is lost, as in ROS: docs/architecture.md, "Services"); each operator's
+requests are harmless to repeat (a value set again, a transition refused when already made).
+
     operator.py gain STEP ...        set /gain_controller's `gain` (its ~/set_parameters)
     operator.py fast STEP ...        call /mode_switch/fast_mode (std_srvs/SetBool), VALUE 0|1
     operator.py lifecycle STEP ...   ask /lifecycle_counter/change_state for a transition
@@ -14,6 +19,7 @@ the first checkpoint falls among the numbers):
 
 import json
 import sys
+import time
 
 import rclpy
 from lifecycle_msgs.msg import Transition
@@ -24,6 +30,8 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import Int64, String
 from std_srvs.srv import SetBool
+
+RESEND_AFTER = 1.0  # seconds without a response
 
 
 def main():
@@ -53,8 +61,23 @@ def main():
     checkpointed = []  # [True] once the node's first checkpoint was seen
     counted = [0]  # numbers seen since the last step was taken and the first checkpoint
 
+    pending = []  # [future, sent at, request value, what was printed] while unanswered
+
+    def answered():
+        """Whether the last request was answered; sends it again when its time is up."""
+        if not pending:
+            return True
+        future, sent_at, value, said = pending
+        if future.done():
+            pending.clear()
+            return True
+        if time.monotonic() - sent_at > RESEND_AFTER and client.service_is_ready():
+            pending[:] = [client.call_async(request(value)), time.monotonic(), value, said]
+            print(f'{said}: no response in {RESEND_AFTER} s, sent again', flush=True)
+        return False
+
     def on_number(msg):
-        if not steps:
+        if not answered() or not steps:
             return
         after_checkpoint, n, value = steps[0]
         if after_checkpoint:
@@ -70,8 +93,9 @@ def main():
             return
         steps.pop(0)
         counted[0] = 0
-        client.call_async(request(value))
-        print(f'at {msg.data} ({where}): {what} {value}', flush=True)
+        said = f'at {msg.data} ({where}): {what} {value}'
+        pending[:] = [client.call_async(request(value)), time.monotonic(), value, said]
+        print(said, flush=True)
 
     while steps and steps[0][:2] == (False, 0):
         _, _, value = steps.pop(0)

@@ -107,8 +107,33 @@ def test_second_kill_during_recovery(method: str, tmp_path: Path, ros_domain: in
     _assert_safe_state_held_until_release(result)
 
 
-def test_replay_kill_mid_run(tmp_path: Path, ros_domain: int) -> None:
-    result = run('replay', (Kill(after=3.0),), tmp_path, domain_id=ros_domain, count=COUNT)
+# Three crashed runs whose assertions do not hang on where the kill falls against a checkpoint
+# or a replay: side by side.
+SIDE_BY_SIDE_KILLS: dict[str, tuple[str, tuple[Kill, ...], dict[str, Any]]] = {
+    'replay_mid_run': ('replay', (Kill(after=3.0),), {}),
+    'rory_fast_replay': ('rory', (Kill(after=3.0),), {'pace': 'fast'}),
+    'handover': ('rory', (Kill(after=0.5),), {}),
+}
+
+
+@pytest.fixture(scope='module')
+def crashed_runs(
+    module_ros_domains: Callable[[], int], tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[SideBySide[ScenarioResult]]:
+    """The three runs of SIDE_BY_SIDE_KILLS (independent: each its own domain, folder and
+    processes)."""
+    def crashed(method: str, kills: tuple[Kill, ...],
+                more: dict[str, Any]) -> Callable[[int, Path], ScenarioResult]:
+        return lambda domain, folder: run(method, kills, folder, domain_id=domain, count=COUNT,
+                                          **more)
+    with side_by_side({k: crashed(*v) for k, v in SIDE_BY_SIDE_KILLS.items()},
+                      module_ros_domains, tmp_path_factory.mktemp('crashed')) as runs:
+        yield runs
+
+
+@pytest.mark.xdist_group('recovery_exact_crashed')  # one worker: the runs are shared
+def test_replay_kill_mid_run(crashed_runs: SideBySide[ScenarioResult]) -> None:
+    result = crashed_runs['replay_mid_run']  # replay, SIGKILLed 3 s into the numbers
     _assert_exact(result)
     recovered = [e for e in result.events if e['kind'] == 'recovered']
     hellos = [e for e in result.events if e['kind'] == 'hello']
@@ -117,17 +142,19 @@ def test_replay_kill_mid_run(tmp_path: Path, ros_domain: int) -> None:
     assert recovered[0]['replayed'] >= 140
 
 
-def test_rory_fast_replay(tmp_path: Path, ros_domain: int) -> None:
-    result = run(
-        'rory', (Kill(after=3.0),), tmp_path, domain_id=ros_domain, count=COUNT, pace='fast'
-    )
-    _assert_exact(result)
+@pytest.mark.xdist_group('recovery_exact_crashed')
+def test_rory_fast_replay(crashed_runs: SideBySide[ScenarioResult]) -> None:
+    _assert_exact(crashed_runs['rory_fast_replay'])  # rory, fast, SIGKILLed 3 s in
 
 
-def test_handover_returns_the_topic_to_its_live_reader(tmp_path: Path, ros_domain: int) -> None:
-    # Killed early, the node is back while numbers still flow: the relay must hand /numbers
-    # back to the node's own live subscription, without losing or repeating a message.
-    result = run('rory', (Kill(after=0.5),), tmp_path, domain_id=ros_domain, count=COUNT)
+@pytest.mark.xdist_group('recovery_exact_crashed')
+def test_handover_returns_the_topic_to_its_live_reader(
+    crashed_runs: SideBySide[ScenarioResult]
+) -> None:
+    # Killed early (0.5 s in), the node is back while numbers still flow: the relay must hand
+    # /numbers back to the node's own live subscription, without losing or repeating a
+    # message.
+    result = crashed_runs['handover']
     switched = [e['topic'] for e in result.events if e['kind'] == 'switched']
     assert switched == ['/numbers']
     _assert_exact(result)

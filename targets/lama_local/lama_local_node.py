@@ -22,43 +22,22 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 
 from lama_local_localizer import LamaConfig, LamaLocalizer, PoseEstimate, ScanSkipped
 from lama_local_matcher import MatcherConfig
-from planar_geometry import Pose, quaternion_from_yaw, yaw_from_quaternion
-from planar_map import grid_from_values
-
-LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
-                     reliability=ReliabilityPolicy.RELIABLE)
-WARN_EVERY = 5.0  # seconds between repeats of the same warning
-SCAN_QUEUE = 10  # scans held until odometry reaches their stamp (tf2's message filter does it)
+from planar_geometry import Pose
+from planar_localizer import LATCHED, SCAN_QUEUE, LocalizerCallbacks
 
 
-def stamp_ns(stamp: Any) -> int:
-    """A builtin_interfaces/Time as integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def covariance_3x3(cov36: Any) -> np.ndarray:
-    """x, y, yaw block of a 6 x 6 row-major pose covariance."""
-    c = np.asarray(cov36, dtype=np.float64).reshape(6, 6)
-    return c[np.ix_((0, 1, 5), (0, 1, 5))].copy()
-
-
-def covariance_36(cov3: np.ndarray) -> list[float]:
-    """A 3 x 3 (x, y, yaw) covariance placed in a 6 x 6 row-major pose covariance."""
-    out = np.zeros((6, 6))
-    out[np.ix_((0, 1, 5), (0, 1, 5))] = cov3
-    return [float(v) for v in out.ravel()]
-
-
-class LamaLocalNode(Node):
+class LamaLocalNode(LocalizerCallbacks[PoseEstimate], Node):
     """The ROS side of the localizer: parameters, subscriptions, conversion, publishing.
 
-    Its state is ``localizer`` (see ``keyvars.yaml``).
+    Its state is ``localizer`` and ``waiting_scans`` (see ``keyvars.yaml``); the callbacks
+    are ``LocalizerCallbacks``'s, shared with amcl.
     """
+
+    scan_skipped = ScanSkipped
 
     def __init__(self) -> None:
         super().__init__('lama_local')
@@ -109,114 +88,10 @@ class LamaLocalNode(Node):
             self.declare_parameter(name, value)
         return {name: self.get_parameter(name).value for name in defaults}
 
-    # -- callbacks ----------------------------------------------------------------------------
+    # -- what differs from amcl (planar_localizer.LocalizerCallbacks has the rest) ------------
 
-    def on_map(self, msg: OccupancyGrid) -> None:
-        """A new map: the distance field is rebuilt."""
-        topic = self.map_sub.topic_name
-        q = msg.info.origin.orientation
-        if abs(q.x) > 1e-6 or abs(q.y) > 1e-6 or abs(q.z) > 1e-6:
-            self.get_logger().warning(f'{topic}: a rotated map origin is not supported; ignored')
-            return
-        try:
-            grid = grid_from_values(msg.data, int(msg.info.width), int(msg.info.height),
-                                    float(msg.info.resolution),
-                                    float(msg.info.origin.position.x),
-                                    float(msg.info.origin.position.y))
-        except ValueError as err:
-            self.get_logger().warning(f'{topic}: malformed map ({err}); ignored')
-            return
-        self.localizer.set_map(grid)
-        self.get_logger().info(f'{topic}: map {grid.width} x {grid.height} at '
-                               f'{grid.resolution} m')
-        self._process_ready_scans()
-
-    def on_odom(self, msg: Odometry) -> None:
-        """Remember the odometry pose at its stamp."""
-        p = msg.pose.pose
-        q = p.orientation
-        pose = (float(p.position.x), float(p.position.y),
-                yaw_from_quaternion(q.x, q.y, q.z, q.w))
-        if not all(math.isfinite(v) for v in pose):
-            self.get_logger().warning(f'{self.odom_sub.topic_name}: non-finite pose; skipped',
-                                      throttle_duration_sec=WARN_EVERY)
-            return
-        if not self.localizer.add_odometry(stamp_ns(msg.header.stamp), pose):
-            self.get_logger().warning(
-                f'{self.odom_sub.topic_name}: stamp older than the last one; skipped',
-                throttle_duration_sec=WARN_EVERY)
-            return
-        self._process_ready_scans()
-
-    def on_initial_pose(self, msg: PoseWithCovarianceStamped) -> None:
-        """Restart from the given pose."""
-        topic = self.initial_pose_sub.topic_name
-        frame = msg.header.frame_id.lstrip('/')
-        if frame and frame != self.global_frame:
-            self.get_logger().warning(
-                f'{topic}: pose in frame {frame!r}, expected {self.global_frame!r}; ignored')
-            return
-        p = msg.pose.pose
-        q = p.orientation
-        pose = (float(p.position.x), float(p.position.y),
-                yaw_from_quaternion(q.x, q.y, q.z, q.w))
-        cov = covariance_3x3(msg.pose.covariance)
-        if not (all(math.isfinite(v) for v in pose) and np.isfinite(cov).all()
-                and (np.diag(cov) >= 0).all()):
-            self.get_logger().warning(f'{topic}: non-finite pose or bad covariance; ignored')
-            return
-        self.localizer.set_pose(pose, cov)
-        self.get_logger().info(f'{topic}: restarted at ({pose[0]:.2f}, {pose[1]:.2f}, '
-                               f'{pose[2]:.2f})')
-
-    def on_scan(self, msg: LaserScan) -> None:
-        """Queue the scan; it is matched once the map and the odometry at its stamp are here."""
-        if self.localizer.grid is None:
-            self.get_logger().warning(
-                f'{self.scan_sub.topic_name}: no map yet; scans wait for it '
-                f'(the newest {SCAN_QUEUE} are kept)', throttle_duration_sec=WARN_EVERY)
-        self.waiting_scans.append(msg)
-        self._process_ready_scans()
-
-    def _process_ready_scans(self) -> None:
-        odometry = self.localizer.odometry
-        while self.waiting_scans and self.localizer.grid is not None and odometry and (
-            stamp_ns(self.waiting_scans[0].header.stamp) <= odometry[-1][0]
-        ):
-            self._process_scan(self.waiting_scans.popleft())
-
-    def _process_scan(self, msg: LaserScan) -> None:
-        """Match the scan if the robot moved enough; publish the pose at the scan's stamp."""
-        topic = self.scan_sub.topic_name
-        try:
-            ranges = np.asarray(msg.ranges, dtype=np.float32)
-            estimate = self.localizer.process_scan(
-                stamp_ns(msg.header.stamp), ranges, float(msg.angle_min),
-                float(msg.angle_increment), float(msg.range_min), float(msg.range_max))
-        except ScanSkipped as err:
-            self.get_logger().warning(f'{topic}: {err}; skipped',
-                                      throttle_duration_sec=WARN_EVERY)
-            return
-        if estimate.updated and not estimate.matched:
-            self.get_logger().warning(
-                f'{topic}: too few points near the map to match; moved on odometry alone',
-                throttle_duration_sec=WARN_EVERY)
-        self._publish_pose(msg, estimate)
-
-    # -- outputs ----------------------------------------------------------------------------------
-
-    def _publish_pose(self, scan: LaserScan, estimate: PoseEstimate) -> None:
-        out = PoseWithCovarianceStamped()
-        out.header.stamp = scan.header.stamp
-        out.header.frame_id = self.global_frame
-        x, y, yaw = estimate.pose
-        out.pose.pose.position.x = x
-        out.pose.pose.position.y = y
-        _, _, qz, qw = quaternion_from_yaw(yaw)
-        out.pose.pose.orientation.z = qz
-        out.pose.pose.orientation.w = qw
-        out.pose.covariance = covariance_36(estimate.covariance)
-        self.pose_pub.publish(out)
+    def _odometry_alone(self, estimate: PoseEstimate) -> str | None:
+        return None if estimate.matched else 'too few points near the map to match'
 
 
 def main(args: list[str] | None = None) -> None:

@@ -16,7 +16,7 @@ from planar_geometry import compose, odometry_at, relative, wrap_angle
 from planar_map import distance_field, grid_from_values
 
 TARGETS = Path(__file__).resolve().parents[2] / 'targets'
-SHARED = ('planar_map.py', 'planar_geometry.py')
+SHARED = ('planar_map.py', 'planar_geometry.py', 'planar_localizer.py')
 USERS = ('amcl', 'lama_local')
 
 
@@ -92,8 +92,10 @@ def test_an_instrumented_target_carries_the_shared_modules(target: str, tmp_path
         assert copied.read_bytes() == (TARGETS / 'planar' / name).read_bytes()
     # The instrumented node imports (inert without RORY_NODE) with its folder first on sys.path.
     env = {k: v for k, v in os.environ.items() if not k.startswith('RORY_')}
-    done = subprocess.run(
-        [sys.executable, '-c', f'import {target}_node, planar_map; print(planar_map.__file__)'],
-        cwd=out, env=env, capture_output=True, text=True, timeout=120, check=False)
+    modules = [name.removesuffix('.py') for name in SHARED]
+    code = '\n'.join([f'import {target}_node',
+                      *(f'import {m}; print({m}.__file__)' for m in modules)])
+    done = subprocess.run([sys.executable, '-c', code], cwd=out, env=env, capture_output=True,
+                          text=True, timeout=120, check=False)
     assert (done.returncode, done.stderr) == (0, '')
-    assert Path(done.stdout.strip()) == out / 'planar_map.py'
+    assert [Path(line) for line in done.stdout.split()] == [out / name for name in SHARED]

@@ -1,0 +1,1 @@
+../planar/planar_localizer.py

@@ -20,7 +20,8 @@ release themselves; ``rory`` (the log written ahead, checkpoints; not in the def
 sent the RELEASE a supervisor sends at a fresh start by a helper process on its shadow topic.
 Without the supervisor's socket statuses are dropped; its ring and standby are other processes.
 bare, restart and checkpoint repeat within 1 %; rory did not (1.80 and 1.97 M in two runs):
-how often its executor wakes per message depends on how its threads are scheduled.
+how often its executor wakes per message depends on how its threads are scheduled, so the
+table gives the executor's waits per message (calls of ``rcl_wait``) beside the counts.
 
 Each thread is counted on its own (``--separate-threads``), and two whose counts follow wall
 time, not the work, are left out (``IDLE_THREADS``): numpy's OpenBLAS idle thread
@@ -41,7 +42,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from rory_eval.bench.light_node_bench import plain_env
@@ -123,6 +124,7 @@ class Profile:
     total: float
     functions: dict[str, float]  # function -> its self cost
     where: dict[str, str]  # function -> its source file's name, else its object's
+    waits: float = 0.0  # the executor's waits for work (calls of rcl_wait)
 
 
 def parse_annotate(text: str) -> Profile:
@@ -153,6 +155,28 @@ def parse_annotate(text: str) -> Profile:
     return Profile(total, functions, where)
 
 
+def calls_to(text: str, function: str) -> int:
+    """How many times ``function`` was called, from a callgrind output file's text (its
+    ``cfn=`` and ``calls=`` lines; names compressed to ``(id)`` after their first use)."""
+    names: dict[str, str] = {}
+    callee = ''
+    calls = 0
+    for line in text.splitlines():
+        if line.startswith(('fn=', 'cfn=')):
+            ident, _, name = line.split('=', 1)[1].partition(' ')
+            if not ident.startswith('('):  # (not compressed)
+                ident, name = '', line.split('=', 1)[1]
+            elif name:
+                names[ident] = name
+            else:
+                name = names.get(ident, '')
+            if line.startswith('cfn='):
+                callee = _RECURSION.sub('', name)
+        elif line.startswith('calls=') and callee == function:
+            calls += int(line[len('calls='):].split()[0])
+    return calls
+
+
 def idle_thread(profile: Profile) -> bool:
     """Whether a thread's profile is one of an idle loop (:data:`IDLE_THREADS`)."""
     return any(IDLE_THREADS.fullmatch(function) for function in profile.functions)
@@ -160,15 +184,16 @@ def idle_thread(profile: Profile) -> bool:
 
 def combined(profiles: Iterable[Profile]) -> Profile:
     """The threads and processes of one run added up (a child such as ``ldconfig -p``)."""
-    total = 0.0
+    total = waits = 0.0
     functions: dict[str, float] = {}
     where: dict[str, str] = {}
     for profile in profiles:
         total += profile.total
+        waits += profile.waits
         for function, count in profile.functions.items():
             functions[function] = functions.get(function, 0.0) + count
         where = {**profile.where, **where}
-    return Profile(total, functions, where)
+    return Profile(total, functions, where, waits)
 
 
 def per_message(small: Profile, large: Profile, n_small: int, n_large: int) -> Profile:
@@ -180,7 +205,7 @@ def per_message(small: Profile, large: Profile, n_small: int, n_large: int) -> P
     return Profile((large.total - small.total) / span,
                    {f: (large.functions.get(f, 0.0) - small.functions.get(f, 0.0)) / span
                     for f in names},
-                   {**small.where, **large.where})
+                   {**small.where, **large.where}, (large.waits - small.waits) / span)
 
 
 def top_added(config: Profile, bare: Profile, top: int = TOP) -> list[tuple[str, float]]:
@@ -191,10 +216,12 @@ def top_added(config: Profile, bare: Profile, top: int = TOP) -> list[tuple[str,
 
 
 def _annotate(out_file: Path) -> Profile:
+    """A thread's profile: callgrind_annotate's self costs, and the executor's waits."""
     result = subprocess.run(['callgrind_annotate', '--inclusive=no', '--threshold=100',
                              '--auto=no', str(out_file)], capture_output=True, text=True,
                             check=True, cwd='/')  # (annotate drops the cwd from file names)
-    return parse_annotate(result.stdout)
+    waits = calls_to(out_file.read_text(errors='replace'), 'rcl_wait')
+    return replace(parse_annotate(result.stdout), waits=waits)
 
 
 def _node_env(config: str, domain: int, workdir: Path) -> dict[str, str]:
@@ -279,18 +306,19 @@ def _configs(text: str) -> list[str]:
 
 def report(results: dict[str, Profile], counts: tuple[int, int], rate: float) -> str:
     """The Markdown tables: per message against bare, and where each addition goes."""
-    lines = ['| configuration | instructions per LaserScan | added to bare | added (%) |',
-             '|---|---:|---:|---:|']
+    lines = ['| configuration | instructions per LaserScan | added to bare | added (%) '
+             '| executor waits per scan |', '|---|---:|---:|---:|---:|']
     results = {c: results[c] for c in sorted(results, key=CONFIGS.index)}
     bare = results.get('bare')
     for config, profile in results.items():
         added = (f'{profile.total - bare.total:+,.0f} | '
                  f'{100 * (profile.total - bare.total) / bare.total:+.1f} %'
                  if bare is not None and config != 'bare' else '- | -')
-        lines.append(f'| {config} | {profile.total:,.0f} | {added} |')
+        lines.append(f'| {config} | {profile.total:,.0f} | {added} | {profile.waits:.2f} |')
     lines.append(f'\nScans at {rate:g} Hz; per scan: (the run of {counts[1]} - the run of '
                  f'{counts[0]}) / {counts[1] - counts[0]}; the idle threads (OpenBLAS, Fast DDS\'s '
-                 'flow controller) left out.')
+                 'flow controller) left out. Executor waits: calls of rcl_wait; a count that moves '
+                 'between runs moves the instructions with it.')
     if bare is None:
         return '\n'.join(lines)
     for config, profile in results.items():

@@ -10,6 +10,7 @@ import pytest
 
 from rory_eval.bench.instructions_bench import (
     Profile,
+    calls_to,
     combined,
     idle_thread,
     main,
@@ -103,27 +104,60 @@ def test_the_idle_threads_are_told_apart() -> None:
     assert kept.total == 1_000_000
 
 
+# Cut from a callgrind output file of a main thread (250 scans): rcl_wait named at its first
+# use and by its id after; a call of another function in between.
+CALLGRIND_OUT = """\
+fn=(54078)
+0 6000
+cfn=(54134) rcl_wait
+calls=300 0
+0 3000
+fn=(54134)
+0 6000
+cfn=(53850)
+calls=500 0
+0 19000
+fn=(5856) rclpy::WaitSet::wait(rclpy::Context&, long)
+cob=(105)
+cfi=(693)
+cfn=(54134)
+calls=200 0
+0 5857431
+cfn=(54135) rcl_wait_set_clear
+calls=7 0
+0 10
+"""
+
+
+def test_the_executors_waits_are_counted() -> None:
+    assert calls_to(CALLGRIND_OUT, 'rcl_wait') == 500
+    assert calls_to(CALLGRIND_OUT, 'rcl_wait_set_clear') == 7
+    assert calls_to('', 'rcl_wait') == 0
+
+
 def test_per_message_cancels_start_up_and_adds_a_runs_processes() -> None:
     start_up = {'import': 900.0, 'ldconfig': 50.0}
     small = combined([Profile(1_000 + 5 * 100, {**start_up, 'take': 5 * 100.0}, {}),
                       Profile(50, {}, {})])
-    large = Profile(1_050 + 25 * 100, {**start_up, 'take': 25 * 100.0}, {'take': 'x.c'})
+    large = Profile(1_050 + 25 * 100, {**start_up, 'take': 25 * 100.0}, {'take': 'x.c'},
+                    waits=2.0 * 25)  # (the small run's waits: none)
     assert small.total == 1_550
     result = per_message(small, large, 5, 25)
     assert result.total == 100
+    assert result.waits == 2.5
     assert result.functions == {'import': 0, 'ldconfig': 0, 'take': 100}
     with pytest.raises(ValueError):
         per_message(large, small, 25, 25)
 
 
 def test_the_table_shows_what_is_added_and_where() -> None:
-    bare = Profile(1_000_000, {'take': 900_000, 'wait': 100_000}, {'take': 'a.c'})
+    bare = Profile(1_000_000, {'take': 900_000, 'wait': 100_000}, {'take': 'a.c'}, 2.0)
     restart = Profile(1_040_000, {'take': 900_000, 'wait': 105_000, 'route': 35_000},
-                      {'route': 'routing.py'})
+                      {'route': 'routing.py'}, 2.0)
     assert top_added(restart, bare, top=2) == [('route', 35_000), ('wait', 5_000)]
     text = report({'bare': bare, 'restart': restart}, (50, 250), 10)
-    assert '| bare | 1,000,000 | - | - |' in text
-    assert '| restart | 1,040,000 | +40,000 | +4.0 % |' in text
+    assert '| bare | 1,000,000 | - | - | 2.00 |' in text
+    assert '| restart | 1,040,000 | +40,000 | +4.0 % | 2.00 |' in text
     assert '| `route` (routing.py) | +35,000 |' in text
 
 

@@ -476,7 +476,10 @@ class ManagedNode:
                 stats, self.gated_stats = self.gated_stats, None
                 self._finish_release(stats)
         elif isinstance(status, CheckpointStatus):
-            _logger.info(
+            # DEBUG: one every checkpoint_interval per node is routine (events.jsonl,
+            # /rory/events and the diagnostics' checkpoint age carry it); at INFO it went to the
+            # console and /rosout, an rclpy log call of ~0.3 ms each, several a second at rest.
+            _logger.debug(
                 '%s %s: checkpoint %s (cut %s, %s B, stall %.2f ms)', LOG_PREFIX, self.id,
                 status.seq, status.cut, status.size, float(status.stall_ms),
             )

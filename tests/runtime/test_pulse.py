@@ -81,25 +81,28 @@ def test_an_idle_node_is_probed_once_per_look_and_beats_when_the_probe_runs() ->
         assert node.beats == expected
 
 
-def _parked_pulse(node: Node, parked: list[bool], asked: list[int]) -> Pulse:
+def _probed_once(node: Node, parked: bool, asked: list[int]) -> tuple[Pulse, FakeExecutor]:
+    """A pulse whose executor the test says is parked (or not), after its first probe ran on
+    this thread (which the pulse then knows as the executor's)."""
     def is_parked(thread_id: int) -> bool:
         asked.append(thread_id)
-        return parked[0]
+        return parked
 
-    return Pulse(lambda: node.executor, node._beat, lambda: node.progress, lambda: node.now_ns,
-                 parked=is_parked)
-
-
-def test_an_idle_executor_parked_in_its_wait_beats_without_a_probe_but_every_2_s() -> None:
-    node = Node()
-    parked, asked = [True], []
-    pulse = _parked_pulse(node, parked, asked)
+    pulse = Pulse(lambda: node.executor, node._beat, lambda: node.progress, lambda: node.now_ns,
+                  parked=is_parked)
     executor = node.executor
     assert executor is not None
     pulse.tick()  # progress 0 is news
     pulse.tick()  # no thread known yet: a probe
     assert len(executor.tasks) == 1
-    executor.spin_once()  # it runs on this thread: the executor's
+    executor.spin_once()
+    return pulse, executor
+
+
+def test_an_idle_executor_parked_in_its_wait_beats_without_a_probe_but_every_2_s() -> None:
+    node = Node()
+    asked: list[int] = []
+    pulse, executor = _probed_once(node, True, asked)
     beats = node.beats
     posted = 0
     for _ in range(3 * PARKED_PROBE_EVERY):
@@ -114,13 +117,7 @@ def test_an_idle_executor_parked_in_its_wait_beats_without_a_probe_but_every_2_s
 def test_parked_but_deaf_the_beat_stops() -> None:
     # Found parked, probed, and the probe never runs: no more beats, as for a stuck executor.
     node = Node()
-    parked, asked = [True], []
-    pulse = _parked_pulse(node, parked, asked)
-    executor = node.executor
-    assert executor is not None
-    pulse.tick()
-    pulse.tick()
-    executor.spin_once()
+    pulse, executor = _probed_once(node, True, [])
     for _ in range(PARKED_PROBE_EVERY):
         pulse.tick()
     assert len(executor.tasks) == 1  # the probe, not run
@@ -133,13 +130,7 @@ def test_parked_but_deaf_the_beat_stops() -> None:
 
 def test_not_parked_and_no_progress_is_probed_at_every_look() -> None:
     node = Node()
-    parked, asked = [False], []
-    pulse = _parked_pulse(node, parked, asked)
-    executor = node.executor
-    assert executor is not None
-    pulse.tick()
-    pulse.tick()
-    executor.spin_once()
+    pulse, executor = _probed_once(node, False, [])
     for _ in range(5):
         pulse.tick()
         assert len(executor.tasks) == 1

@@ -113,6 +113,9 @@ class EventClock:
         self._began = 0.0
         # Per clock type, the last recorded reading's distance from system time.
         self._offsets: dict[int, int] = {}
+        # Per clock type, the latest reading a replayed event returned: a fallback never goes
+        # below it (a node computing dt must not see its clock go back).
+        self._latest: dict[int, int] = {}
         self.fallbacks = 0  # replayed readings that had no recorded value
 
     def begin_live(self) -> None:
@@ -173,13 +176,20 @@ class EventClock:
 
     def _replayed(self, clock: Clock, clock_type: int) -> int:
         readings = self._readings
+        latest = self._latest.get(clock_type, 0)
         if readings and readings[0].clock_type == clock_type:
             reading = readings.popleft()
             self._offsets[clock_type] = reading.value_ns - reading.at_ns
+            self._latest[clock_type] = max(latest, reading.value_ns)
             return reading.value_ns
         self.fallbacks += 1
         offset = self._offsets.get(clock_type)
         if offset is None:
             offset = _live_offset(clock, clock_type)
         elapsed = int((time.monotonic() - self._began) * 1e9)
-        return max(0, self._event_ns + offset + elapsed)
+        # The event's own time can lie before the last reading returned: a message the ring
+        # received before the node applied the one logged before it (a node running late on a
+        # loaded computer). Its clock does not go back for that: it reads the last reading.
+        value = max(0, self._event_ns + offset + elapsed, latest)
+        self._latest[clock_type] = value
+        return value

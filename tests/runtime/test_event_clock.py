@@ -106,6 +106,25 @@ def test_a_replayed_event_without_a_recording_reads_its_own_time_with_the_last_o
     assert events.fallbacks == 1
 
 
+def test_a_fallback_before_the_last_recorded_reading_does_not_take_the_clock_back(
+    events: EventClock,
+) -> None:
+    # The node applied message k late (recorded reading at 2.0 s, received at 1.0 s); the ring
+    # received message k+1, never logged by the node, at 1.5 s: its fallback would be 1.5 s
+    # plus the offset, before 2.0 s. It reads 2.0 s: the clock stands, it does not go back.
+    sim = _ros_clock_with(99_000_000_000)
+    events.begin_replay(1_000_000_000, [Reading(ClockType.ROS_TIME, 2_000_000_000,
+                                                2_000_000_000)])
+    first = sim.now().nanoseconds
+    events.end()
+    events.begin_replay(1_500_000_000, [])
+    fallback = sim.now().nanoseconds
+    events.end()
+    assert first == 2_000_000_000
+    assert fallback == 2_000_000_000
+    assert events.fallbacks == 1
+
+
 def test_a_fallback_keeps_advancing_so_a_callback_waiting_on_its_clock_gets_there(
     events: EventClock,
 ) -> None:

@@ -296,10 +296,15 @@ class SharedReader:
         """The newest ``view.depth`` messages, in receive order; see :meth:`RingTopic.activate`.
         """
         with self._lock:
-            taken = self._take_waiting()
-            self.retained.extend(taken)
-            held = list(self.retained)
             first = not self._delivers
+            if first:
+                # Nobody takes from DDS while no view is active: what it holds is taken here.
+                self.retained.extend(self._take_waiting())
+            # Else the ring's thread takes what DDS holds and hands it to every active view,
+            # this one included. Taken here, it would reach this view alone: with two nodes
+            # struck together, the first one's recovery lost the message the second one's
+            # activation took (make test under load).
+            held = list(self.retained)
             self._delivers[view] = deliver
             if first:
                 self._ctx.watch(self)
@@ -347,7 +352,9 @@ class RingTopic:
         Returns:
             The newest :attr:`depth` messages the ring has had (taken earlier while active,
             for this node or another that shares the reader, and what DDS holds), in receive
-            order: what a reader that was never taken from would hold. Older ones were the
+            order: what a reader that was never taken from would hold. (While another node's
+            view is active, what DDS holds reaches ``deliver`` instead, as it reaches that
+            node's: so both get it.) Older ones were the
             node's long before its crash; keeping them would hand the recovery messages
             applied outside every window it can check (issue 21's duplicates). The caller
             must deliver them before anything ``deliver`` receives: see :meth:`Ring.activate`.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -268,6 +269,52 @@ def test_nodes_reading_a_topic_alike_share_one_reader(ros_domain: int) -> None:
         assert [e.seq for e in taken_other] == list(range(1, depth + 23))
     finally:
         for ring in (first, second, small, other):
+            for topic in ring.topics.values():
+                topic.destroy()
+        pub_node.destroy_node()
+        pub_ctx.try_shutdown()
+        ctx.shutdown()
+
+
+def test_a_message_taken_during_another_nodes_activation_reaches_both(ros_domain: int) -> None:
+    # Two nodes sharing a reader, struck together: the first one's view is active, a message
+    # arrives, and the second one activates before the ring's thread has taken it (under load,
+    # it had not). Both must get it, once each. It once went to the second node's backlog only,
+    # and the first node's recovery reported it as never having reached the host.
+    ctx = RingContext(domain_id=ros_domain)
+    first, second = Ring(ctx, 'first'), Ring(ctx, 'second')
+    first.ensure([SPEC])
+    second.ensure([SPEC])
+    reader = first.topics[SPEC.topic].reader
+    pub_ctx = Context()
+    rclpy.init(context=pub_ctx, domain_id=ros_domain)
+    pub_node = Node('racing_publisher', context=pub_ctx)
+    pub = pub_node.create_publisher(Int64, SPEC.topic, QoSProfile(depth=1000))
+    try:
+        deadline = time.monotonic() + 10.0
+        while first.publisher_count(SPEC.topic) < 1 or pub.get_subscription_count() < 1:
+            assert time.monotonic() < deadline, 'ring reader and publisher never matched'
+            time.sleep(0.01)
+        pub.publish(Int64(data=1))
+        pub.wait_for_all_acked(Duration(seconds=5.0))
+        taken_first = Capture()
+        first.activate(taken_first)
+        assert [e.seq for e in taken_first] == [1]
+        # The ring's thread is late: it takes nothing until the second node has activated.
+        late = threading.Event()
+        reader.take_new = late.wait  # type: ignore[method-assign,assignment]
+        pub.publish(Int64(data=2))
+        pub.wait_for_all_acked(Duration(seconds=5.0))
+        taken_second = Capture()
+        second.activate(taken_second)
+        del reader.take_new  # the thread takes again: message 2 is still in DDS
+        late.set()
+        _settle(pub, taken_second, 2)
+        _settle(pub, taken_first, 2)
+        assert [e.seq for e in taken_first] == [1, 2]
+        assert [e.seq for e in taken_second] == [1, 2]
+    finally:
+        for ring in (first, second):
             for topic in ring.topics.values():
                 topic.destroy()
         pub_node.destroy_node()

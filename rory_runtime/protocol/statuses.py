@@ -53,8 +53,8 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 
-from .errors import ProtocolError
-from .freshness import Verdict
+from ..errors import ProtocolError
+from ..freshness import Verdict
 
 # ---------------------------------------------------------------------------------------------
 # Environment the supervisor sets for a node it runs. Without ENV_NODE the runtime stays inert

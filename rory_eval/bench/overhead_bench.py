@@ -36,9 +36,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from rory_eval.evaluation.plan import BARE, WORLDS, RunSpec, duration_for
-from rory_eval.evaluation.runner import RunRecord, execute, instrument
 from rory_eval.harness.simrun import exit_on_sigterm
+from rory_eval.runs.plan import BARE, WORLDS, RunSpec, duration_for
+from rory_eval.runs.runner import RunRecord, execute, instrument
 from rory_eval.targets import TARGETS
 
 CONFIGS = (BARE, 'restart', 'checkpoint', 'replay', 'rory')

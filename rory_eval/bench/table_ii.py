@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from rory_eval.bench.light_node_bench import alternating
-from rory_eval.evaluation.plan import BARE, WORLDS, RunSpec, duration_for
+from rory_eval.runs.plan import BARE, WORLDS, RunSpec, duration_for
 from rory_eval.targets import TARGETS
 
 STACK = 'stack'
@@ -128,7 +128,7 @@ def _order(program: str) -> int:
 def target_pairs(target: str, world: str, runs: int, out: Path, domain: int,
                  progress: Callable[[str], None] = print) -> tuple[list[Pair], int]:
     """The target's evaluation workload bare and under RORY, ``runs`` times alternating."""
-    from rory_eval.evaluation.runner import RunRecord, execute, instrument
+    from rory_eval.runs.runner import RunRecord, execute, instrument
 
     instrumented = instrument(TARGETS[target], out / 'instrumented' / target)
     records: dict[int, dict[str, RunRecord]] = {}

@@ -34,7 +34,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from rory_eval.evaluation import figures, report
     from rory_eval.evaluation.cli import Progress, execute_plan
-    from rory_eval.evaluation.plan import build_plan
+    from rory_eval.runs.plan import build_plan
 
     print(f'{TARGET} maps {WORLD} for {args.duration:g} s: without a crash, then SIGKILLed at '
           f'{args.crash_at:g} s and recovered by restart (ROS respawn) and by rory.\n',

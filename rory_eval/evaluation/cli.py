@@ -5,12 +5,12 @@
         [--replay fast|paced] [--other-pace [METHOD ...]] [--jobs 1] [--out eval-out] [--fresh]
         [--report-only] [--table-ii DIR ...]
 
-Each run is its own process (:mod:`.runner`) in its own ROS domain; its record is kept in
-``OUT/runs/NAME/``, so an interrupted evaluation goes on where it stopped (``--fresh`` starts
-over; ``--report-only`` runs nothing and reports what is recorded). At the end it judges every
-crash run against its reference (:mod:`.judge`) and writes ``OUT/results.md`` (the tables, the
-failures, the settings, the machine, the command and how long it took), ``OUT/runs.csv`` (one
-row per run) and ``OUT/figures/*.png``.
+Each run is its own process (:mod:`rory_eval.runs.runner`) in its own ROS domain; its record
+is kept in ``OUT/runs/NAME/``, so an interrupted evaluation goes on where it stopped
+(``--fresh`` starts over; ``--report-only`` runs nothing and reports what is recorded). At the
+end it judges every crash run against its reference (:mod:`.judge`) and writes
+``OUT/results.md`` (the tables, the failures, the settings, the machine, the command and how
+long it took), ``OUT/runs.csv`` (one row per run) and ``OUT/figures/*.png``.
 
 The evaluation's own overhead runs share the machine with its other runs. The paper's Table II
 is measured on a quiet machine by :mod:`rory_eval.bench.table_ii`; ``--table-ii`` puts the
@@ -34,7 +34,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from rory_eval.evaluation import judge as judge_module
-from rory_eval.evaluation.plan import (
+from rory_eval.runs.plan import (
     CRASH_AT,
     METHODS,
     PACED_METHODS,
@@ -45,7 +45,7 @@ from rory_eval.evaluation.plan import (
     build_plan,
     opposite_pace,
 )
-from rory_eval.evaluation.runner import RECORD, RunRecord, instrument
+from rory_eval.runs.runner import RECORD, RunRecord, instrument
 from rory_eval.targets import TARGETS
 
 QUICK_TARGET = 'grid_slam'
@@ -69,7 +69,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     crash.add_argument('--random-crash', action='store_true',
                        help='a uniformly random crash time per repetition (seeded)')
     parser.add_argument('--duration', type=float, default=None,
-                        help='sim seconds per run (default: per target kind, see plan.py)')
+                        help='sim seconds per run (default: per target kind, see '
+                             'rory_eval/runs/plan.py)')
     parser.add_argument('--replay', choices=PACES, default='fast',
                         help="replay pace of rory and replay (paced: the paper's)")
     parser.add_argument('--other-pace', nargs='*', choices=PACED_METHODS, default=None,
@@ -189,7 +190,7 @@ def execute_plan(plan: Plan, out: Path, *, jobs: int, domain: int, fresh: bool,
         try:
             with (folder / 'runner.log').open('wb') as log:
                 subprocess.run(
-                    [sys.executable, '-m', 'rory_eval.evaluation.runner',
+                    [sys.executable, '-m', 'rory_eval.runs.runner',
                      str(folder / 'spec.json'), '--out', str(folder), '--domain', str(slot),
                      '--instrumented', str(inst / spec.target)],
                     stdout=log, stderr=subprocess.STDOUT, env=env, check=False,

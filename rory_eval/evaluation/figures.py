@@ -17,9 +17,9 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # after the backend is chosen
 
 from rory_eval.evaluation.judge import Verdict, load_map, load_model
-from rory_eval.evaluation.plan import BARE
 from rory_eval.evaluation.report import Judged
-from rory_eval.evaluation.runner import RunRecord
+from rory_eval.runs.plan import BARE
+from rory_eval.runs.runner import RunRecord
 from rory_eval.targets import TARGETS, Kind
 from sim.render import draw_world
 from sim.worlds import get_world

@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from rory_eval.evaluation.runner import RunRecord
 from rory_eval.metrics import FREE_BELOW, OCCUPIED_AT, map_score, near, position_errors
+from rory_eval.runs.runner import RunRecord
 from rory_eval.targets import Kind
 from sim.maps import OccupancyMap
 from sim.worlds import get_world

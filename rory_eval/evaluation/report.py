@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from rory_eval.evaluation.judge import Verdict, judge
-from rory_eval.evaluation.plan import BARE, METHODS, WORLDS
-from rory_eval.evaluation.runner import RECORD, RunRecord
+from rory_eval.runs.plan import BARE, METHODS, WORLDS
+from rory_eval.runs.runner import RECORD, RunRecord
 from rory_eval.targets import TARGETS
 
 # The recovery steps as the supervisor reports them (rory_runtime/supervisor/recovery.py).

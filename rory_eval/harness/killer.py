@@ -1,6 +1,6 @@
 """The SIGKILL of a crash run: the supervised node, a set time after the simulator's clock starts.
 
-The evaluation's runs (rory_eval/evaluation/runner.py), the exact-output check
+The evaluation's runs (rory_eval/runs/runner.py), the exact-output check
 (rory_eval/faults/target_crash.py) and the fleet (rory_eval/harness/fleet.py) crash their node
 with it. The node's pid is the supervisor's last ``spawn`` event in the store.
 """

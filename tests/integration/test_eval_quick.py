@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_eval.evaluation.plan import METHODS
+from rory_eval.runs.plan import METHODS
 
 pytestmark = pytest.mark.ros
 

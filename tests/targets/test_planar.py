@@ -79,7 +79,7 @@ def test_each_user_links_the_shared_modules_rather_than_copying_them(target: str
 
 @pytest.mark.parametrize('target', USERS)
 def test_an_instrumented_target_carries_the_shared_modules(target: str, tmp_path: Path) -> None:
-    # As the evaluation instruments a target (rory_eval/evaluation/runner.py, instrument): the
+    # As the evaluation instruments a target (rory_eval/runs/runner.py, instrument): the
     # folder alone is copied, so the links must arrive as files.
     source = TARGETS / target
     out = tmp_path / target

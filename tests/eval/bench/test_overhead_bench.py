@@ -7,8 +7,8 @@ import math
 import pytest
 
 from rory_eval.bench.overhead_bench import main, summarise, table
-from rory_eval.evaluation.plan import BARE, RunSpec
-from rory_eval.evaluation.runner import RunRecord
+from rory_eval.runs.plan import BARE, RunSpec
+from rory_eval.runs.runner import RunRecord
 
 
 def _record(config: str, repetition: int, roles: dict[str, tuple[float, float]],

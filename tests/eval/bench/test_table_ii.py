@@ -12,9 +12,9 @@ import pytest
 
 from rory_eval.bench import stack_bench, table_ii
 from rory_eval.bench.table_ii import STACK, Pair, Row, TableIIError, merge, row, table
-from rory_eval.evaluation import runner
-from rory_eval.evaluation.plan import RunSpec
-from rory_eval.evaluation.runner import RunRecord
+from rory_eval.runs import runner
+from rory_eval.runs.plan import RunSpec
+from rory_eval.runs.runner import RunRecord
 
 
 def test_ratio_and_added_memory_are_medians_of_each_pair() -> None:

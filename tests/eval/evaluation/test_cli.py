@@ -14,8 +14,8 @@ import pytest
 from rory_eval.bench import table_ii
 from rory_eval.evaluation import cli
 from rory_eval.evaluation.cli import main, parse_args
-from rory_eval.evaluation.plan import build_plan
-from rory_eval.evaluation.runner import RunRecord
+from rory_eval.runs.plan import build_plan
+from rory_eval.runs.runner import RunRecord
 
 
 def test_rory_also_runs_paced_by_default_but_not_in_the_quick_evaluation() -> None:

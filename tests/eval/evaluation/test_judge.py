@@ -15,8 +15,8 @@ from rory_eval.evaluation.judge import (
     judge_model,
     reached_goal,
 )
-from rory_eval.evaluation.plan import BARE, RunSpec
-from rory_eval.evaluation.runner import RunRecord
+from rory_eval.runs.plan import BARE, RunSpec
+from rory_eval.runs.runner import RunRecord
 from rory_eval.targets import Kind
 from sim.worlds import get_world
 

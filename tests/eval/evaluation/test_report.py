@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 
 from rory_eval.evaluation.judge import Verdict
-from rory_eval.evaluation.plan import BARE, RunSpec
 from rory_eval.evaluation.report import (
     columns,
     correctness_table,
@@ -24,7 +23,8 @@ from rory_eval.evaluation.report import (
     symbol,
     write_csv,
 )
-from rory_eval.evaluation.runner import RunRecord
+from rory_eval.runs.plan import BARE, RunSpec
+from rory_eval.runs.runner import RunRecord
 
 
 def test_symbols_follow_the_paper() -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from rory_eval.evaluation.plan import (
+from rory_eval.runs.plan import (
     BARE,
     MAPPING_SECONDS,
     METHODS,

@@ -1,8 +1,8 @@
 """One evaluation run, as its own process: the simulator, the target, maybe a crash.
 
-    python -m rory_eval.evaluation.runner RUN.json --out DIR --domain N --instrumented DIR
+    python -m rory_eval.runs.runner RUN.json --out DIR --domain N --instrumented DIR
 
-``RUN.json`` is a :class:`~rory_eval.evaluation.plan.RunSpec`. The target runs bare (the original
+``RUN.json`` is a :class:`~rory_eval.runs.plan.RunSpec`. The target runs bare (the original
 script) or under ``rory supervise`` with the spec's method, checkpoint interval and replay pace;
 with a crash time, the node process is SIGKILLed that many seconds after the clock starts (the
 simulator runs at real-time factor 1). The run leaves, in DIR:
@@ -34,9 +34,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from rory_eval.evaluation.plan import BARE, RunSpec
 from rory_eval.harness.killer import Killer
 from rory_eval.harness.simrun import LATCHED, SimRun, SimRunResult, store_events
+from rory_eval.runs.plan import BARE, RunSpec
 from rory_eval.targets import TARGETS, Kind, Target
 
 RECORD = 'record.json'
@@ -257,7 +257,7 @@ def _keep(result: SimRunResult, record: RunRecord, target: Target, pose_topic: s
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one spec; exit 0 when the run completed (whatever the target's result)."""
-    parser = argparse.ArgumentParser(prog='python -m rory_eval.evaluation.runner')
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.runs.runner')
     parser.add_argument('spec', type=Path, help='RunSpec as JSON')
     parser.add_argument('--out', type=Path, required=True)
     parser.add_argument('--domain', type=int, required=True)

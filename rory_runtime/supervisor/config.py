@@ -23,6 +23,8 @@ Example::
         nodes: [integrator]       # only while one of these recovers (default: every node)
     store: .rory
     dds: fast_rediscovery         # fast_rediscovery (default) | inherit
+    standbys: 3                   # warm standbys kept for the nodes that share an rclpy.init
+                                  # (default: one per node with warm_standby, at most 3)
     prefix_output: true           # node lines as "[name] ..." (default: with several nodes)
 
 Every error names the file and the field (``nodes[0].method``).
@@ -50,6 +52,9 @@ from ..protocol import NODE_ID_RE, Method, ReplayPace
 # A ROS topic name, absolute or relative (no ~ or substitutions: the supervisor publishes it).
 _TOPIC_RE = re.compile(r'/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*')
 _PYTHON_NAMES = frozenset({'python', 'python3', 'python3.11'})
+
+DEFAULT_MAX_STANDBYS = 3
+"""The default pool's ceiling: three nodes struck together all start warm."""
 
 
 @dataclass(frozen=True)
@@ -128,6 +133,23 @@ class SupervisorConfig:
     keep_runs: int = 3
     # Node output lines prefixed with ``[name] ``; None: when there is more than one node.
     prefix_output: bool | None = None
+    # Warm standbys kept per rclpy.init signature (supervisor/standby.py); None: the default,
+    # :attr:`standby_pool_size`.
+    standbys: int | None = None
+
+    @property
+    def standby_pool_size(self) -> int:
+        """How many warm standbys each group of nodes that can share one keeps waiting.
+
+        One bug often takes down every node that reads a message at once (issue 38): each
+        node struck beyond the pool starts cold. By default one per node that wants a standby,
+        at most :data:`DEFAULT_MAX_STANDBYS` (each costs memory and CPU at rest:
+        docs/performance.md, "The standby pool").
+        """
+        if self.standbys is not None:
+            return self.standbys
+        wanting = sum(1 for node in self.nodes if node.warm_standby)
+        return max(1, min(DEFAULT_MAX_STANDBYS, wanting))
 
     @property
     def prefixes_output(self) -> bool:
@@ -225,7 +247,7 @@ def parse_config(doc: Any, path: Path, folder: Path) -> SupervisorConfig:
     Raises:
         ConfigError: A field is invalid.
     """
-    top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds', 'keep_runs',
+    top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds', 'keep_runs', 'standbys',
                                   'prefix_output'})
 
     nodes_raw = top.required('nodes')
@@ -261,9 +283,14 @@ def parse_config(doc: Any, path: Path, folder: Path) -> SupervisorConfig:
     prefix_output = top.obj.get('prefix_output')
     if prefix_output is not None and not isinstance(prefix_output, bool):
         raise top.error('prefix_output', f'must be true or false, got {prefix_output!r}')
+    standbys = top.obj.get('standbys')
+    if standbys is not None and (isinstance(standbys, bool) or not isinstance(standbys, int)
+                                 or standbys < 1):
+        raise top.error('standbys', f'must be a positive integer (warm_standby: false on a '
+                                    f'node turns its standby off), got {standbys!r}')
     return SupervisorConfig(
         path=path, folder=folder, nodes=nodes, safe_state=safe, store=store, dds=dds,
-        keep_runs=keep_runs, prefix_output=prefix_output,
+        keep_runs=keep_runs, prefix_output=prefix_output, standbys=standbys,
     )
 
 

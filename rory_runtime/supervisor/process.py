@@ -51,8 +51,10 @@ class Launcher(Protocol):
         lines when they are prefixed (supervisor/output.py)."""
         ...
 
-    def prepare(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> int | None:
-        """Get ready for the next ``spawn`` of ``argv`` (a warm standby); its pid, or None."""
+    def prepare(self, argv: Sequence[str], env: Mapping[str, str],
+                cwd: Path) -> list[int] | None:
+        """Get ready for the next ``spawn`` of ``argv`` (warm standbys): the pids started now
+        (none if ready already), or None when ``argv`` cannot have a standby."""
         ...
 
     def discard(self, argv: Sequence[str], cwd: Path) -> None:
@@ -122,7 +124,8 @@ class PopenLauncher:
         )
         return _PopenChild(proc, why_cold)
 
-    def prepare(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> int | None:
+    def prepare(self, argv: Sequence[str], env: Mapping[str, str],
+                cwd: Path) -> list[int] | None:
         """Nothing to prepare: every start is cold."""
         return None
 

@@ -1,15 +1,19 @@
-"""Starting nodes, the supervisor's side: forks of the zygote, and one warm standby for all.
+"""Starting nodes, the supervisor's side: forks of the zygote, and a pool of warm standbys.
 
 :class:`ForkLauncher` is a :class:`~.process.Launcher`. A node whose command is a Python program
 (``python FILE ...`` or ``python -m MODULE ...``, this interpreter, the zygote's import
 environment) starts as a fork of the zygote (:mod:`.zygote`): its imports are already in
-memory. ``prepare()`` keeps a *standby* ready: a fork that has called ``rclpy.init`` and whose
-DDS participant the graph already knows, so a recovered node receives its first message
-within milliseconds rather than after the 1-2 s a new participant takes to be discovered. One
-standby serves every node with the same ``rclpy.init`` (:func:`~.zygote.init_signature`): a
-robot's nodes under one supervisor usually share one. ``spawn()`` activates it when it fits;
-when it is gone (two nodes crashed at once, or it died) the node is forked cold from the
-zygote, and says why. Any other command is started with ``exec``, cold.
+memory. ``prepare()`` keeps *standbys* ready: forks that have called ``rclpy.init`` and whose
+DDS participants the graph already knows, so a recovered node receives its first message
+within milliseconds rather than after the discovery a new participant waits for
+(docs/performance.md, "Where a slow cold start waits"). A pool of ``pool_size`` standbys
+serves every node with the same ``rclpy.init`` (:func:`~.zygote.init_signature`): a robot's
+nodes under one supervisor usually share one pool, and one bad message that takes down
+several of them at once finds a standby for each, up to the pool's size. ``spawn()``
+activates one when it fits; when none is left (more nodes struck together than the pool
+holds, or they died) the node is forked cold from the zygote, and says why. The pool is
+filled again :data:`REFILL_DELAY` after it was taken from. Any other command is started with
+``exec``, cold.
 """
 
 from __future__ import annotations
@@ -111,12 +115,11 @@ class PidChild:
 
 @dataclass
 class Standby:
-    """The waiting process of one init signature."""
+    """One waiting process."""
 
     child: PidChild
     control: int  # write end of its control pipe
     started: float
-    wanted_by: set[tuple[tuple[str, ...], str]] = field(default_factory=set)
     ready_at: float | None = None
     done: threading.Event = field(default_factory=threading.Event)
     streams: Streams | None = None  # its output pipes, when lines are prefixed
@@ -135,12 +138,38 @@ class Standby:
             self.child.wait(timeout=5.0)
 
 
-def _key(argv: Sequence[str], cwd: Path) -> tuple[tuple[str, ...], str]:
+CommandKey = tuple[tuple[str, ...], str]
+"""A node's command line and folder: what asks for a standby."""
+
+
+@dataclass
+class StandbyPool:
+    """The standbys of one init signature, for every command that can become one of them."""
+
+    waiting: list[Standby] = field(default_factory=list)
+    wanted_by: set[CommandKey] = field(default_factory=set)
+    # When a standby was last taken (activated or found dead): the refill waits
+    # REFILL_DELAY after it, so that new standbys do not compete with recoveries for the CPU.
+    taken_at: float | None = None
+
+    def best(self) -> Standby | None:
+        """The one to hand out next: the longest ready, else the longest starting."""
+        ready = [s for s in self.waiting if s.ready_at is not None]
+        return min(ready or self.waiting, key=lambda s: s.started, default=None)
+
+
+REFILL_DELAY = 1.0
+"""Seconds after a standby was taken before its pool is filled again: a crash that took it
+has its recovery done by then (tens of milliseconds warm), and several nodes struck together
+take theirs within that time."""
+
+
+def _key(argv: Sequence[str], cwd: Path) -> CommandKey:
     return tuple(argv), str(cwd)
 
 
 class ForkLauncher:
-    """Forks nodes from the zygote, from the shared standby when one is waiting.
+    """Forks nodes from the zygote, from a pool of standbys when one is waiting.
 
     Args:
         zygote: The fork server (started before the supervisor's ``rclpy.init``); without one
@@ -148,15 +177,18 @@ class ForkLauncher:
         clock: Monotonic clock.
         output: Prefixes every process's output lines with its label; None: processes write
             to the supervisor's own stdout and stderr.
+        pool_size: Standbys kept waiting per init signature.
     """
 
     def __init__(self, zygote: Zygote | None,
                  clock: Callable[[], float] = time.monotonic,
-                 output: OutputPrefixer | None = None) -> None:
+                 output: OutputPrefixer | None = None,
+                 pool_size: int = 1) -> None:
         self.zygote = zygote
         self._clock = clock
         self.output = output
-        self._standbys: dict[Hashable, Standby] = {}
+        self.pool_size = pool_size
+        self._pools: dict[Hashable, StandbyPool] = {}
         self._lock = threading.Lock()
         self._exec = PopenLauncher()
 
@@ -174,17 +206,43 @@ class ForkLauncher:
             return None, f'its import environment differs ({", ".join(changed)})'
         return init_signature(program, env), ''
 
-    def prepare(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path) -> int | None:
-        """Have a standby waiting for the next ``spawn(argv, ...)``: the one its init signature
-        shares, or a new fork. Its pid, or None when this command cannot have one."""
+    def prepare(self, argv: Sequence[str], env: Mapping[str, str],
+                cwd: Path) -> list[int] | None:
+        """Have the pool of standbys that ``spawn(argv, ...)`` would start from full: the pool
+        its init signature shares, with what is missing forked now (not within
+        :data:`REFILL_DELAY` of a standby being taken from it). The pids started (none when
+        the pool is full or the refill must wait), or None when this command cannot have a
+        standby. Called from one thread (the supervisor's main loop)."""
         signature, _why = self._forkable(argv, env)
         if signature is None or self.zygote is None:
             return None
+        now = self._clock()
         with self._lock:
-            standby = self._standbys.get(signature)
-            if standby is not None and standby.child.poll() is None:
-                standby.wanted_by.add(_key(argv, cwd))
-                return standby.pid
+            pool = self._pools.setdefault(signature, StandbyPool())
+            pool.wanted_by.add(_key(argv, cwd))
+            dead = [s for s in pool.waiting if s.child.poll() is not None]
+            for standby in dead:
+                pool.waiting.remove(standby)
+            if dead:
+                pool.taken_at = now
+            waits = pool.taken_at is not None and now - pool.taken_at < REFILL_DELAY
+            missing = 0 if waits else self.pool_size - len(pool.waiting)
+        for standby in dead:
+            _logger.warning('%s standby pid %d had ended (%s); another takes its place',
+                            LOG_PREFIX, standby.pid, standby.child.poll())
+            standby.drop()
+        started = []
+        for _ in range(missing):
+            standby = self._fork_standby(signature, argv, env, cwd)
+            with self._lock:
+                pool = self._pools.setdefault(signature, StandbyPool())
+                pool.waiting.append(standby)
+            started.append(standby.pid)
+        return started
+
+    def _fork_standby(self, signature: Hashable, argv: Sequence[str], env: Mapping[str, str],
+                      cwd: Path) -> Standby:
+        assert self.zygote is not None
         program = forkable(argv)
         assert program is not None
         args = init_arguments(signature)
@@ -197,14 +255,9 @@ class ForkLauncher:
             if streams is not None:
                 streams.close_child_ends()
         standby = Standby(PidChild(forked.pid, warm=True), forked.control, self._clock(),
-                          {_key(argv, cwd)}, streams=streams)
-        with self._lock:
-            old = self._standbys.pop(signature, None)
-            self._standbys[signature] = standby
-        if old is not None:
-            old.drop()
+                          streams=streams)
         self._watch_ready(standby, forked.ready)
-        return standby.pid
+        return standby
 
     def _watch_ready(self, standby: Standby, ready: int) -> None:
         def watch() -> None:
@@ -225,23 +278,41 @@ class ForkLauncher:
         threading.Thread(target=watch, name='rory-standby', daemon=True).start()
 
     def standby(self, argv: Sequence[str], cwd: Path) -> Standby | None:
-        """The standby this command would start from, if one waits."""
+        """The standby this command would start from next, if one waits."""
         with self._lock:
-            for standby in self._standbys.values():
-                if _key(argv, cwd) in standby.wanted_by:
-                    return standby
+            for pool in self._pools.values():
+                if _key(argv, cwd) in pool.wanted_by:
+                    return pool.best()
         return None
+
+    def standbys(self, argv: Sequence[str], cwd: Path) -> list[Standby]:
+        """Every standby this command could start from."""
+        with self._lock:
+            for pool in self._pools.values():
+                if _key(argv, cwd) in pool.wanted_by:
+                    return list(pool.waiting)
+        return []
+
+    def _take(self, signature: Hashable) -> Standby | None:
+        with self._lock:
+            pool = self._pools.get(signature)
+            standby = None if pool is None else pool.best()
+            if pool is not None and standby is not None:
+                pool.waiting.remove(standby)
+                pool.taken_at = self._clock()
+            return standby
 
     def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path,
               label: str = '') -> Child:
-        """Activate the shared standby if it fits, else fork cold, else exec cold."""
+        """Activate a standby of the pool if one fits, else fork cold, else exec cold."""
         signature, why = self._forkable(argv, env)
         if signature is None or self.zygote is None:
             return self._exec_spawn(argv, env, cwd, why, label)
         with self._lock:
-            standby = self._standbys.pop(signature, None)
-        why = 'no standby waiting'
-        if standby is not None:
+            pooled = signature in self._pools
+        why = (f'no standby waiting (the pool of {self.pool_size} is in use)' if pooled
+               else 'no standby waiting')
+        while (standby := self._take(signature)) is not None:
             standby.done.set()
             code = standby.child.poll()
             if code is not None:
@@ -277,22 +348,23 @@ class ForkLauncher:
                 streams.close_child_ends()
 
     def discard(self, argv: Sequence[str], cwd: Path) -> None:
-        """This command no longer wants a standby; the shared one goes once none does."""
-        drop = []
+        """This command no longer wants a standby; a pool goes once no command wants it."""
+        drop: list[Standby] = []
         with self._lock:
-            for signature, standby in list(self._standbys.items()):
-                standby.wanted_by.discard(_key(argv, cwd))
-                if not standby.wanted_by:
-                    drop.append(self._standbys.pop(signature))
+            for signature, pool in list(self._pools.items()):
+                pool.wanted_by.discard(_key(argv, cwd))
+                if not pool.wanted_by:
+                    drop.extend(self._pools.pop(signature).waiting)
         for standby in drop:
             standby.drop()
 
     def close(self) -> None:
         """Drop every standby and end the zygote."""
         with self._lock:
-            standbys, self._standbys = list(self._standbys.values()), {}
-        for standby in standbys:
-            standby.drop()
+            pools, self._pools = list(self._pools.values()), {}
+        for pool in pools:
+            for standby in pool.waiting:
+                standby.drop()
         if self.zygote is not None:
             self.zygote.close()
         if self.output is not None:

@@ -203,6 +203,7 @@ class ManagedNode:
                                  cfg.start_timeout, cfg.hello_timeout)
         self.resumed = False  # first started from the store of a run that did not stop
         self.standby_for: int | None = None  # the incarnation whose successor is on standby
+        self.standby_checked_at = 0.0  # when the standby pool was last topped up for it
         self.crashes_total = 0
         self.reported_gaps: set[InputGap] = set()  # input gaps already logged (recovery.py)
         # What the ring took since the heartbeat went late (None: not capturing).
@@ -765,19 +766,24 @@ class ManagedNode:
             gate_service=self.gate_service if self.cfg.release_gate is not None else None,
         )
 
-    def _prepare_standby(self) -> None:
-        """Start the process that will replace this one at its next crash."""
+    def _prepare_standby(self, now: float) -> None:
+        """Have the pool of processes that will replace this one (or another node that shares
+        them) at its next crash full: another node's crash may have taken one."""
+        first = self.standby_for != self.incarnation
         self.standby_for = self.incarnation
-        pid = self.sup.launcher.prepare(
+        self.standby_checked_at = now
+        pids = self.sup.launcher.prepare(
             self.cfg.command, self._env(Mode.RECOVER, self.incarnation + 1),
             self.sup.config.folder,
         )
-        if pid is None:
-            _logger.info('%s %s: no warm standby for this command (not python FILE or '
-                         'python -m MODULE); restarts are cold', LOG_PREFIX, self.id)
+        if pids is None:
+            if first:
+                _logger.info('%s %s: no warm standby for this command (not python FILE or '
+                             'python -m MODULE); restarts are cold', LOG_PREFIX, self.id)
             return
-        _logger.info('%s %s: standby pid %d started', LOG_PREFIX, self.id, pid)
-        self.sup.events_log.write('standby', self.id, pid=pid, incarnation=self.incarnation)
+        for pid in pids:
+            _logger.info('%s %s: standby pid %d started', LOG_PREFIX, self.id, pid)
+            self.sup.events_log.write('standby', self.id, pid=pid, incarnation=self.incarnation)
 
     def _drop_standby(self) -> None:
         if self.standby_for is not None:
@@ -822,9 +828,10 @@ class ManagedNode:
             # of a handover that may never end (a topic whose publisher stops).
             self._report_input_gaps(self.recovery)
         if (state == NodeState.RUNNING and self.cfg.warm_standby
-                and self.standby_for != self.incarnation and self.running_since is not None
-                and now - self.running_since >= STANDBY_DELAY):
-            self._prepare_standby()
+                and self.running_since is not None and now - self.running_since >= STANDBY_DELAY
+                and (self.standby_for != self.incarnation
+                     or now - self.standby_checked_at >= STANDBY_DELAY)):
+            self._prepare_standby(now)
         if state == NodeState.GATED and self.open_sent and now - self.open_sent_at >= SYNC_PERIOD:
             self._send_open()
         if (state == NodeState.GATED and self.gate_deadline is not None
@@ -1106,7 +1113,7 @@ class Supervisor:
 
     def _start_zygote(self) -> None:
         """The fork server every node starts from (supervisor/zygote.py): its imports, frozen,
-        shared by every node process and the standby."""
+        shared by every node process and the standbys."""
         programs = [p for p in (forkable(n.command) for n in self.config.nodes) if p]
         if not programs:
             return
@@ -1116,7 +1123,7 @@ class Supervisor:
             _logger.warning('%s no fork server (%s); every node starts with exec, cold',
                             LOG_PREFIX, err)
             return
-        self.launcher = ForkLauncher(zygote)
+        self.launcher = ForkLauncher(zygote, pool_size=self.config.standby_pool_size)
 
     def run(self) -> int:
         """Supervise until stopped. Returns the process exit code."""

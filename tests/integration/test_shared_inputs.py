@@ -1,5 +1,5 @@
 """Two nodes that read the same topic, under one supervisor, SIGKILLed at the same moment: both
-come back exact. Their ring shares one reader of the topic (rory_runtime/supervisor/ring.py,
+come back exact, each from a standby of the default pool. Their ring shares one reader of the topic (rory_runtime/supervisor/ring.py,
 `SharedReader`), so each recovery's backlog comes from a history the other node's activation
 also takes from. Real processes throughout: two instrumented integrators, `rory supervise`, a
 publisher of 1..N; exactness as in test_recovery_exact.py.
@@ -91,6 +91,10 @@ def test_two_nodes_sharing_an_input_struck_together_both_recover_exactly(
                 graph = observers[NODES[0]].node
                 wait_until('the graph never showed 3 readers of /numbers',
                            lambda: graph.count_subscribers('/numbers') == len(NODES) + 1, 10.0)
+                # The default pool holds a standby for each of the two (config.py,
+                # standby_pool_size): both start warm.
+                wait_until('the pool never had two standbys ready',
+                           lambda: sup_log.read_text().count(' ready in ') >= len(NODES), 30.0)
                 time.sleep(KILL_AFTER)
                 pids = [trackers[name].pid for name in NODES]
                 assert all(pid is not None for pid in pids)
@@ -108,6 +112,8 @@ def test_two_nodes_sharing_an_input_struck_together_both_recover_exactly(
         for observer in observers.values():
             observer.close()
     assert sorted(e['node'] for e in recovered) == sorted(NODES), recovered
+    respawns = [e for e in events.events if e['kind'] == 'spawn' and e['incarnation'] == 2]
+    assert sorted(e['node'] for e in respawns if e['warm']) == sorted(NODES), respawns
     assert all(t.first_respawned_at is not None and t.first_respawned_at >= struck_at - 1.0
                for t in trackers.values())
     for name, observer in observers.items():

@@ -98,9 +98,9 @@ class FakeLauncher:
         self.children.append(child)
         return child
 
-    def prepare(self, argv: Any, env: Any, cwd: Path) -> int | None:
+    def prepare(self, argv: Any, env: Any, cwd: Path) -> list[int] | None:
         self.prepared.append(list(argv))
-        return 999 if self.standby else None
+        return [999] if self.standby else None
 
     def discard(self, argv: Any, cwd: Path) -> None:
         pass

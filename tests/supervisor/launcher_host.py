@@ -22,7 +22,8 @@ def main() -> int:
     from rory_runtime.supervisor.standby import ForkLauncher
     from rory_runtime.supervisor.zygote import Zygote
 
-    launcher = ForkLauncher(Zygote.start([], preload=('rclpy.node',)))
+    launcher = ForkLauncher(Zygote.start([], preload=('rclpy.node',)),
+                            pool_size=int(os.environ.get('LAUNCHER_HOST_POOL', '1')))
     # Prefixed output goes to a file: this process's stdout carries the replies.
     prefixed_to = os.environ.get('LAUNCHER_HOST_PREFIXED_OUTPUT')
     if prefixed_to:
@@ -35,7 +36,12 @@ def main() -> int:
         op = request.pop('op')
         reply: dict[str, Any] = {}
         if op == 'prepare':
-            reply['pid'] = launcher.prepare(request['argv'], request['env'], Path(request['cwd']))
+            started = launcher.prepare(request['argv'], request['env'], Path(request['cwd']))
+            after = launcher.standby(request['argv'], Path(request['cwd']))
+            # pid: the standby this command would start from next
+            reply = {'started': started, 'pid': None if after is None else after.pid,
+                     'pool': [s.pid for s in launcher.standbys(request['argv'],
+                                                              Path(request['cwd']))]}
         elif op == 'spawn':
             child = launcher.spawn(request['argv'], request['env'], Path(request['cwd']),
                                    label=request.get('label', ''))

@@ -9,6 +9,7 @@ every call)."""
 
 from __future__ import annotations
 
+import logging
 import signal
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from rory_runtime.protocol import OpenedStatus, RestoredCheckpoint, SwitchedStat
 from rory_runtime.supervisor.recovery import RecoveryLog
 from rory_runtime.supervisor.ring import Capture
 from rory_runtime.supervisor.states import NodeState
+from rory_runtime.supervisor.supervisor import STANDBY_DELAY
 from rory_runtime.supervisor.watchdog import HANG_DUMP_GRACE, HELLO_TIMEOUT, STALL_SUSPECT
 
 S = NodeState
@@ -490,3 +492,36 @@ def test_stopping_during_a_recovery_keeps_the_safe_state_held(tmp_path: Path) ->
     h.node.stop()
     assert child.signals == [signal.SIGINT] and h.node.sm.state == S.STOPPED
     assert recovery is not None and recovery.streamer is None and h.sup.safety.log == HELD
+
+
+def test_a_running_node_keeps_the_shared_standby_pool_full(tmp_path: Path) -> None:
+    # The pool is shared: a crash of another node may take a standby at any time, so a running
+    # node tops it up every STANDBY_DELAY (the launcher refills only what is missing, and not
+    # while a standby was just taken), and never during its own start or recovery.
+    h = Harness(tmp_path, method='rory', warm_standby=True)
+    h.sup.launcher.standby = True
+    h.node.start()
+    h.beat()
+    h.tick(STANDBY_DELAY)  # starting: not yet
+    assert h.sup.launcher.prepared == []
+    h.up()
+    h.tick(STANDBY_DELAY / 2)
+    assert h.sup.launcher.prepared == []
+    h.tick(STANDBY_DELAY / 2)
+    assert len(h.sup.launcher.prepared) == 1
+    assert [e['pid'] for e in h.sup.events_log.of('standby')] == [999]
+    h.tick(STANDBY_DELAY / 2)
+    assert len(h.sup.launcher.prepared) == 1
+    h.tick(STANDBY_DELAY / 2)
+    assert len(h.sup.launcher.prepared) == 2
+
+
+def test_a_command_that_cannot_have_a_standby_is_said_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger='rory.supervisor')
+    h = _started(tmp_path, method='rory', warm_standby=True)
+    for _ in range(4):
+        h.tick(STANDBY_DELAY)
+    assert len(h.sup.launcher.prepared) == 4
+    assert caplog.text.count('no warm standby for this command') == 1

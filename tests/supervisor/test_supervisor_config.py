@@ -495,3 +495,18 @@ def test_a_release_gate_takes_a_timeout_and_what_to_do_then(tmp_path: Path) -> N
         err = refusal(write(tmp_path, node))
         assert err.field == f'nodes[0].release_gate.{field}'
         assert reason in str(err), err
+
+
+def test_the_standby_pool_holds_one_per_node_that_wants_one_up_to_three(tmp_path: Path) -> None:
+    def nodes(n: int, extra: str = '') -> str:
+        return 'nodes: [' + ', '.join(f'{{name: n{i}, command: [x]{extra}}}'
+                                      for i in range(n)) + ']\n'
+    assert load_config(write(tmp_path, nodes(1))).standby_pool_size == 1
+    assert load_config(write(tmp_path, nodes(2))).standby_pool_size == 2
+    assert load_config(write(tmp_path, nodes(6))).standby_pool_size == 3
+    # nodes without a standby do not count (restart, or warm_standby: false)
+    assert load_config(write(tmp_path, nodes(4, ', method: restart'))).standby_pool_size == 1
+    assert load_config(write(tmp_path, nodes(6) + 'standbys: 5\n')).standby_pool_size == 5
+    for bad in ('0', 'true', '1.5', 'all'):
+        err = refusal(write(tmp_path, nodes(1) + f'standbys: {bad}\n'))
+        assert err.field == 'standbys' and 'positive integer' in err.reason

@@ -1,8 +1,9 @@
 """Two nodes that read the same topic, under one supervisor, SIGKILLed at the same moment: both
-come back exact, each from a standby of the default pool. Their ring shares one reader of the topic (rory_runtime/supervisor/ring.py,
-`SharedReader`), so each recovery's backlog comes from a history the other node's activation
-also takes from. Real processes throughout: two instrumented integrators, `rory supervise`, a
-publisher of 1..N; exactness as in test_recovery_exact.py.
+come back exact, each from a standby of the default pool. Their ring shares one reader of the
+topic (rory_runtime/supervisor/ring.py, `SharedReader`), so each recovery's backlog comes from a
+history the other node's activation also takes from. Real processes throughout: two
+instrumented integrators, `rory supervise`, a publisher of 1..N; exactness as in
+test_recovery_exact.py.
 """
 
 from __future__ import annotations

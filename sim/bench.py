@@ -47,7 +47,7 @@ def _sink() -> int:
     import rclpy.utilities
     from rclpy.executors import ExternalShutdownException
 
-    from .bridge import SENSOR_QOS
+    from .qos import SENSOR_QOS
 
     rclpy.init()
     node = rclpy.create_node('bench_sink')

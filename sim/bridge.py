@@ -6,9 +6,10 @@ under a lock. Nothing spins on a timer, so an idle executor costs nothing, and t
 is one ``mj_step`` call (five physics steps); ``/clock`` goes out every other tick (50 Hz).
 
 Topics, rates, QoS and frames are listed in ``sim/README.md``; the QoS profiles are defined
-here, once, for the driver and the tests to share. Topic names are relative, as a ROS driver's
-are: ``/scan`` by default, ``/robot1/scan`` under ``rory sim ... --ros-args -r __ns:=/robot1``
-(``/clock`` too, so each robot's nodes remap ``/clock`` to their own simulator's).
+once, in ``sim/qos.py``, for the bridge, the driver and the tests to share. Topic names are
+relative, as a ROS driver's are: ``/scan`` by default, ``/robot1/scan`` under
+``rory sim ... --ros-args -r __ns:=/robot1`` (``/clock`` too, so each robot's nodes remap
+``/clock`` to their own simulator's).
 """
 
 from __future__ import annotations
@@ -31,40 +32,14 @@ from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, LaserScan, PointCloud2, PointField
 from std_msgs.msg import Bool, String
 
 from .driver import CONTROL_RATE, RouteFollower
 from .maps import OccupancyMap
+from .qos import CLOCK_QOS, CLOUD_QOS, CMD_VEL_QOS, EVENT_QOS, LATCHED_QOS, SENSOR_QOS
 from .simulation import TICK, CollisionEvent, Frame, Simulation
-
-SENSOR_QOS = QoSProfile(
-    depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
-    history=HistoryPolicy.KEEP_LAST,
-)
-"""Sensors, odometry, ground truth: reliable, volatile, keep last 10 (best-effort readers match)."""
-
-CLOUD_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
-"""Depth clouds: reliable, keep last 2 (a slow reader gets the newest, not a backlog)."""
-
-CLOCK_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
-"""/clock: reliable keep-last 1 (rclpy's time source reads it best-effort, which matches)."""
-
-CMD_VEL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
-"""/cmd_vel: reliable, depth 10 (rclpy's default; a best-effort publisher would not match)."""
-
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-"""/e_stop, /ground_truth/map, /sim/info: reliable, transient local, depth 1."""
-
-EVENT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
-"""/collisions: reliable, depth 100 (events must not be dropped)."""
 
 MAX_LAG = 0.2  # s behind real time before the pacing gives up catching up
 

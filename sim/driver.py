@@ -143,7 +143,7 @@ def _run_node(route: Sequence[tuple[float, float]], speed: float, timeout: float
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    from .bridge import CMD_VEL_QOS
+    from .qos import CMD_VEL_QOS
 
     rclpy.init()
     node = Node('route_driver', start_parameter_services=False)

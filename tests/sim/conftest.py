@@ -72,7 +72,7 @@ class Probe:
         from sensor_msgs.msg import LaserScan
         from std_msgs.msg import Bool, String
 
-        from sim.bridge import CMD_VEL_QOS, LATCHED_QOS, SENSOR_QOS
+        from sim.qos import CMD_VEL_QOS, LATCHED_QOS, SENSOR_QOS
 
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain,

@@ -17,7 +17,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Bool
 
-from sim.bridge import LATCHED_QOS
+from sim.qos import LATCHED_QOS
 
 pytestmark = pytest.mark.ros
 

@@ -21,6 +21,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from ..errors import LogError
 from ..fsutil import make_private_dir
@@ -46,6 +47,17 @@ class Quarantined:
     topic: str
     ident: MessageId
     path: Path
+
+    def to_json(self) -> dict[str, Any]:
+        """For the ``recovered`` event: the message and its quarantine record."""
+        return {'topic': self.topic, 'source_ns': self.ident[0], 'seq': self.ident[1],
+                'path': str(self.path)}
+
+
+def died_on_json(inflight: InFlight) -> dict[str, Any]:
+    """For the ``recovered`` event: the message a process died applying, and that process."""
+    return {'incarnation': inflight.incarnation, 'topic': inflight.topic,
+            'source_ns': inflight.ident[0], 'seq': inflight.ident[1]}
 
 
 class PoisonGuard:

@@ -45,6 +45,7 @@ from rosbags.interfaces import Qos
 
 from .. import protocol
 from ..errors import LogError
+from ..inflight import InFlight
 from ..log import LogEntry, SegmentStore, SegmentWriter
 from ..protocol import (
     FLAG_RELAY,
@@ -58,6 +59,7 @@ from ..protocol import (
 )
 from ..store import CheckpointStore
 from .lineage import Admission, InputGap, SequenceWatch, Verdict
+from .poison import Quarantined, died_on_json
 from .ports import SafetyPort
 from .ring import Ring
 from .states import LOG_PREFIX
@@ -421,6 +423,11 @@ class Recovery:
     _reported: dict[InputGap, list[InputGap]] = field(default_factory=dict, init=False)
     _held_since: dict[InputGap, float] = field(default_factory=dict, init=False)
     _stopped: bool = field(default=False, init=False)
+    # The messages its crashes died applying and those quarantined as poison on the way
+    # (poison.py), in crash order: the ``recovered`` event names them, so that a state that
+    # lacks a message says which one and why.
+    died_on: list[InFlight] = field(default_factory=list, init=False)
+    quarantined: list[Quarantined] = field(default_factory=list, init=False)
 
     def __post_init__(self) -> None:
         self.timings = Timings(crashed=self.crashed)
@@ -576,6 +583,20 @@ class Recovery:
             gap.topic, protocol.seq_ranges(applied),
             f'the input gap is {left}' if left else 'no input gap is left')
         return pieces
+
+    def note_crash(self, died_on: InFlight | None, quarantined: Quarantined | None) -> None:
+        """What a crash this recovery covers died applying (None: no message, e.g. a signal
+        between callbacks), and the message it quarantined, if that crash made one poison."""
+        if died_on is not None:
+            self.died_on.append(died_on)
+        if quarantined is not None:
+            self.quarantined.append(quarantined)
+
+    def poison_summary(self) -> dict[str, list[dict[str, Any]]]:
+        """For the ``recovered`` event: ``died_on`` (per crash that died in a callback, the
+        message and the process) and ``quarantined`` (the messages set aside)."""
+        return {'died_on': [died_on_json(m) for m in self.died_on],
+                'quarantined': [q.to_json() for q in self.quarantined]}
 
     def r_summary(self) -> dict[str, dict[str, int | None]]:
         """What R holds per topic (:meth:`RecoveryLog.summary`); empty without R."""

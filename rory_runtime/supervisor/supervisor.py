@@ -40,7 +40,7 @@ from ..errors import ProtocolError, RoryError
 from ..freshness import Verdict
 from ..freshness import describe as describe_verdict
 from ..fsutil import make_private_dir
-from ..inflight import read_beat, slot_path
+from ..inflight import InFlight, read_beat, slot_path
 from ..log import SegmentStore, default_typestore
 from ..protocol import (
     CheckpointStatus,
@@ -66,7 +66,7 @@ from .lineage import InputGap
 from .output import OutputPrefixer
 from .parameters import NODE_NAME as SUPERVISOR_NODE
 from .parameters import apply_parameters, own_ros_args
-from .poison import PoisonGuard
+from .poison import PoisonGuard, Quarantined
 from .ports import SupervisorPorts
 from .process import Child, Launcher, RestartPolicy, describe_exit
 from .recovery import Recovery
@@ -383,9 +383,11 @@ class ManagedNode:
         ran_for = 0.0 if self.running_since is None else ev.at - self.running_since
         self.running_since = None
         was_recovering = self.sm.recovering
-        self._judge_crash(ev)
+        died_on, quarantined = self._judge_crash(ev)
         self.sm.change_state(NodeState.CRASHED, how)
         self._crashed(ev, was_recovering)
+        assert self.recovery is not None  # made or carried on by _crashed
+        self.recovery.note_crash(died_on, quarantined)
         delay = self.policy.on_crash(ran_for)
         if delay is None:
             self._give_up(f'{self.policy.consecutive - 1} restarts in a row failed; giving up',
@@ -411,8 +413,9 @@ class ManagedNode:
         if self.recovery is not None:
             self.recovery.give_up()
 
-    def _judge_crash(self, ev: ChildExited) -> None:
-        """Did it die applying a message - the same one as last time (poison)?"""
+    def _judge_crash(self, ev: ChildExited) -> tuple[InFlight | None, Quarantined | None]:
+        """Did it die applying a message - the same one as last time (poison)? That message,
+        and its quarantine if it was."""
         rlog = self.recovery.rlog if self.recovery is not None else None
         recent = list(rlog.entries) if rlog is not None else []
         suspect = self.poison.died_on(ev.incarnation)
@@ -427,6 +430,7 @@ class ManagedNode:
                 'died_on', self.id, topic=suspect.topic, source_ns=suspect.ident[0],
                 seq=suspect.ident[1], incarnation=ev.incarnation,
             )
+        return suspect, quarantined
 
     def _crashed(self, ev: ChildExited, was_recovering: bool) -> None:
         rec = self.recovery
@@ -692,7 +696,7 @@ class ManagedNode:
                 'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
                 incarnation=self.incarnation, replay=pace, **timing, **_recovery_counts(stats),
                 input_gaps=[g.to_json() for g in gaps], r_log=rec.r_summary(),
-                never_delivered=never,
+                never_delivered=never, **rec.poison_summary(),
                 freshness=None if self.last_freshness is None else self.last_freshness.to_json(),
                 gate_ms=gate_ms,
                 gate=gate_reason,

@@ -6,6 +6,7 @@ import base64
 import json
 from pathlib import Path
 
+from fake_supervisor import Harness
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Int64
 
@@ -58,3 +59,39 @@ def test_different_messages_or_no_message_are_not_poison(tmp_path: Path) -> None
     slot.busy('/numbers', (4, 4), 1004)
     assert guard.on_crash(2) is None  # the slot belongs to another process
     assert guard.keys == set()
+
+
+def _dies_applying(h: Harness, ident: tuple[int, int] | None) -> None:
+    """The node's current process dies applying /numbers ``ident`` (None: between messages)."""
+    slot = InFlightSlot(h.node.slot, incarnation=h.node.incarnation)
+    if ident is not None:
+        slot.busy('/numbers', ident, 1000 + ident[1])
+    slot.close()
+    h.exit(1)
+
+
+def test_the_recovered_event_names_what_its_crashes_died_on_and_what_was_quarantined(
+    tmp_path: Path
+) -> None:
+    h = Harness(tmp_path)
+    h.node.start()
+    h.up()
+    _dies_applying(h, (77, 7))  # live
+    _dies_applying(h, (77, 7))  # again, replaying it: poison
+    h.tick(0.5)  # the second crash in a row waits the backoff
+    h.up()  # the third process skips it
+    (quarantined,) = h.sup.events_log.of('quarantined')
+    (recovered,) = h.sup.events_log.of('recovered')
+    assert recovered['crashes'] == 2
+    assert recovered['died_on'] == [
+        {'incarnation': 1, 'topic': '/numbers', 'source_ns': 77, 'seq': 7},
+        {'incarnation': 2, 'topic': '/numbers', 'source_ns': 77, 'seq': 7},
+    ]
+    assert recovered['quarantined'] == [
+        {'topic': '/numbers', 'source_ns': 77, 'seq': 7, 'path': quarantined['path']}]
+    # The next recovery names only its own crash: one killed between two messages.
+    h.tick(11.0)  # ran stable: no backoff
+    _dies_applying(h, None)
+    h.up()
+    second = h.sup.events_log.of('recovered')[-1]
+    assert (second['died_on'], second['quarantined']) == ([], [])

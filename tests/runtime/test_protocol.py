@@ -6,6 +6,8 @@ import dataclasses
 import json
 import re
 import struct
+import subprocess
+import sys
 
 import pytest
 from hypothesis import given, settings
@@ -818,3 +820,35 @@ def test_a_signed_status_is_read_and_a_forged_one_refused() -> None:
         decode_status(text.replace('"applied":12', '"applied":13'), KEY)
     with pytest.raises(ProtocolError, match='not signed'):
         decode_status(encode_status(released, 'mapper', 3), KEY)
+
+
+# --- the package ------------------------------------------------------------------------------
+
+
+def test_every_name_the_package_exports_is_there() -> None:
+    import rory_runtime.protocol as protocol
+
+    assert [name for name in protocol.__all__ if not hasattr(protocol, name)] == []
+
+
+def test_the_shadow_topics_qos_is_reliable_volatile_keep_all_and_made_once() -> None:
+    from rory_runtime import protocol
+    from rory_runtime.protocol import REPLAY_QOS, topics
+
+    expected = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1000,
+                          reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.VOLATILE)
+    assert expected == REPLAY_QOS
+    assert REPLAY_QOS is protocol.REPLAY_QOS is topics.REPLAY_QOS
+
+
+def test_loading_the_protocol_loads_no_rclpy() -> None:
+    # The supervisor's decisions read statuses and envelopes on fakes, without ROS: rclpy comes
+    # with the shadow topic's QoS, at its first read.
+    probe = ('import sys\n'
+             'import rory_runtime.protocol\n'
+             'from rory_runtime.protocol import statuses, envelopes, inputs, records, env\n'
+             'assert not [m for m in sys.modules if m.split(".")[0] == "rclpy"], "rclpy loaded"\n'
+             'from rory_runtime.protocol import REPLAY_QOS\n'
+             'assert "rclpy.qos" in sys.modules\n')
+    subprocess.run([sys.executable, '-c', probe], check=True, timeout=60)

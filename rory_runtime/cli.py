@@ -35,6 +35,53 @@ def _missing_extra(command: str) -> str:
     return ', '.join(m for m in EXTRAS[command] if importlib.util.find_spec(m) is None)
 
 
+FORWARDED_SIGNALS = ('SIGINT', 'SIGTERM', 'SIGHUP', 'SIGQUIT')
+"""The signals ``rory sim`` passes on to the simulator it runs."""
+
+
+def _run_program(command: list[str]) -> int:
+    """Run ``command`` as a child in the foreground, as if this process were it: the signals
+    in :data:`FORWARDED_SIGNALS` that reach this process are passed on to the child (Ctrl-C reaches
+    both, being sent to the terminal's whole process group; the simulator stops once on the
+    first and ignores the repeat), and the child's end is this process's: its exit code, or,
+    killed by a signal, the same signal."""
+    import contextlib
+    import os
+    import signal
+    import subprocess
+    import threading
+
+    child: subprocess.Popen[bytes] | None = None
+    early: list[int] = []
+
+    def forward(signum: int, _frame: object) -> None:
+        if child is None:
+            early.append(signum)
+        elif child.returncode is None:
+            child.send_signal(signum)
+
+    # Only the main thread can set handlers; called from another, the child gets no signals.
+    sigs = ([getattr(signal, name) for name in FORWARDED_SIGNALS]
+            if threading.current_thread() is threading.main_thread() else [])
+    previous = {sig: signal.signal(sig, forward) for sig in sigs}
+    try:
+        child = subprocess.Popen(command)
+        for signum in early:
+            child.send_signal(signum)
+        code = child.wait()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if code < 0:
+        # Killed by a signal: end the same way, so that a shell or a supervisor sees it (a
+        # signal whose default is not to end a process ends in its shell code instead).
+        with contextlib.suppress(OSError, ValueError):  # SIGKILL's handler is not ours to set
+            signal.signal(-code, signal.SIG_DFL)
+        os.kill(os.getpid(), -code)
+        return 128 - code
+    return code
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``rory`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -43,11 +90,9 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"pip install 'rory-ros2[{argv[0]}]'", file=sys.stderr)
         return 2
     if argv[:1] == ['sim']:
-        # The simulator has its own parser (sim/cli.py); imported lazily so that supervising
-        # a node never loads MuJoCo.
-        from sim.cli import main as sim_main
-
-        return sim_main(argv[1:])
+        # The simulator (sim/, an extra) is a program of its own with its own parser
+        # (sim/cli.py): run, not imported, so that the runtime never loads it or MuJoCo.
+        return _run_program([sys.executable, '-m', 'sim', *argv[1:]])
     if argv[:1] == ['bundle']:
         from .bundle import bundle_main
 

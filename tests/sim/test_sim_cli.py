@@ -1,8 +1,11 @@
-"""``rory sim`` subcommands that need no ROS: list, info, map, route, render."""
+"""``rory sim`` subcommands that need no ROS: list, info, map, route, render; ``rory sim`` runs
+them as a child process."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -71,8 +74,23 @@ def test_run_is_the_default_subcommand(capsys: pytest.CaptureFixture[str]) -> No
     assert 'rory sim run: error' in capsys.readouterr().err
 
 
-def test_rory_sim_goes_to_the_simulator_cli(capsys: pytest.CaptureFixture[str]) -> None:
+def test_rory_sim_runs_the_simulator_cli_as_a_child(capfd: pytest.CaptureFixture[str]) -> None:
     from rory_runtime.cli import main as rory_main
 
     assert rory_main(['sim', 'info', '--world', 'real_room']) == 0
-    assert json.loads(capsys.readouterr().out)['default_goal'] == 'far_corner'
+    assert json.loads(capfd.readouterr().out)['default_goal'] == 'far_corner'
+    # Its exit code and its error, as the simulator's own parser gives them.
+    assert rory_main(['sim', 'info', '--world', 'nowhere']) == 2
+    assert "rory sim info: error: argument --world: invalid choice: 'nowhere'" in (
+        capfd.readouterr().err)
+
+
+def test_rory_sim_never_imports_the_simulator() -> None:
+    done = subprocess.run(
+        [sys.executable, '-c', 'import sys\nfrom rory_runtime.cli import main\n'
+         "code = main(['sim', 'list'])\n"
+         "assert not [m for m in sys.modules if m == 'sim' or m.startswith('sim.')]\n"
+         'sys.exit(code)'],
+        capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert 'office_small' in done.stdout

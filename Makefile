@@ -72,7 +72,9 @@ discovery: $(STAMP)
 
 # Every fault kind at random moments, some twice: on the integrator (prints runs, correct, lost,
 # twice; ~4 min); crash storms, 1-5 strikes in a row at drawn gaps, on the integrator (~12 min;
-# a wrong schedule is kept in tests/integration/storm_schedules.json); every corpus node with
+# a wrong schedule is kept in tests/integration/storm_schedules.json); common mode, three nodes
+# reading one topic that all die on the same message, twice, and come back with it quarantined
+# (~40 s; docs/faults.md, "Common mode"); every corpus node with
 # fast replay, SIGKILLed at random times, against its no-crash run (~10 min); then on five real
 # targets x three worlds in the simulator (~30 min); then all four parts again, fewer runs, with
 # two busy processes per core beside them and runs without a fault among them, which must show
@@ -83,6 +85,7 @@ discovery: $(STAMP)
 faults: $(STAMP)
 	$(PY) -m rory_eval.faults.fault_campaign --runs 8
 	$(PY) -m rory_eval.faults.storm_campaign --runs 40
+	$(PY) -m rory_eval.faults.common_mode_campaign --runs 5
 	$(PY) -m rory_eval.faults.corpus_campaign --kills 3
 	$(PY) -m rory_eval.faults.target_faults
 	$(PY) -m rory_eval.faults.load_campaign --load 2

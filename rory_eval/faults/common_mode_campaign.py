@@ -219,8 +219,10 @@ def describe(run: CommonModeRun) -> str:
     """The verdict of one run, one line."""
     found = judge(run)
     if not any(found.values()):
+        took = ', '.join(f'{e["node"]} {float(e["total_ms"]):.0f}' for e in run.events
+                         if e['kind'] == 'recovered')
         return (f'exact: {len(NODES)} nodes crashed twice on {TOPIC} seq {run.poison}, came back '
-                f'with it quarantined ({run.seconds:.1f} s)')
+                f'with it quarantined (recovered in ms: {took}; run {run.seconds:.1f} s)')
     wrong = '; '.join(f'{node}: {", ".join(p)}' for node, p in found.items() if p)
     return f'NOT EXACT: {wrong}'
 

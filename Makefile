@@ -39,7 +39,8 @@ eval: $(STAMP)
 	$(PY) -m rory_eval.bench.table_ii --out eval-out/table-ii
 	$(PY) -m rory_eval.evaluation --report-only --table-ii eval-out/table-ii
 
-# Recovery time per method (cold and warm starts), median of 10 runs, side by side; whether
+# Recovery time per method (cold and warm starts), median of 10 runs, side by side; 1, 2, 3
+# and 6 nodes struck at once, with the standby pool and with one standby; whether
 # recording keeps up with scan + odom + cloud + 4 MB map, bare against RORY; checkpoint stall
 # for 1 and 16 MB of state; the CPU of a checkpoint of grid_slam's size with 0-100 % of its chunks changed; recovery time for crashes at 9, 60 and 300 s; the overhead of each
 # mechanism on amcl and grid_slam, bare against restart/checkpoint/replay/rory; the memory floor
@@ -49,6 +50,7 @@ eval: $(STAMP)
 # and per thread (~85 min, not in CI).
 bench: $(STAMP)
 	$(PY) -m rory_eval.bench.recovery_bench --runs 10
+	$(PY) -m rory_eval.bench.struck_together_bench --runs 3
 	$(PY) -m rory_eval.bench.recording_bench --seconds 30
 	$(PY) -m rory_eval.bench.stall_bench
 	$(PY) -m rory_eval.bench.checkpoint_cpu_bench --checkpoints 25 --room

@@ -1,13 +1,17 @@
 """The layers of docs/architecture.md ("Module map"), held: who may import whom.
 
 Every import statement is read from the source (also those inside functions, which load
-lazily but load all the same), relative imports resolved to the package they name.
+lazily but load all the same), relative imports resolved to the package they name. The
+supervisor's decision modules are followed further, through what the modules they reach load
+(``rclpy_paths``); the evaluation's layers are also the order of the module map's last rows.
 """
 
 from __future__ import annotations
 
 import ast
-from collections.abc import Iterator
+import re
+import sys
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import pytest
@@ -22,14 +26,29 @@ def module_name(path: Path) -> str:
     return '.'.join(parts)
 
 
-def imports(path: Path, module: str | None = None) -> Iterator[str]:
+FUNCTIONS = (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)
+
+
+def _statements(tree: ast.AST, at_load: bool) -> Iterator[ast.AST]:
+    """Every node of ``tree``; ``at_load``: only those that run when the module is loaded (not
+    the bodies of its functions)."""
+    stack = [tree]
+    while stack:
+        node = stack.pop()
+        yield node
+        stack.extend(child for child in ast.iter_child_nodes(node)
+                     if not (at_load and isinstance(child, FUNCTIONS)))
+
+
+def imports(path: Path, module: str | None = None, *, at_load: bool = False) -> Iterator[str]:
     """Every module ``path`` (the module ``module``, by default its name under ROOT) imports,
-    absolute."""
+    absolute; ``at_load``: only the imports that run when it is loaded (also those under ``if
+    TYPE_CHECKING:``, which mypy loads), not those inside its functions."""
     tree = ast.parse(path.read_text(), str(path))
     package = (module or module_name(path)).split('.')
     if path.name != '__init__.py':
         package.pop()
-    for node in ast.walk(tree):
+    for node in _statements(tree, at_load):
         if isinstance(node, ast.Import):
             yield from (alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -45,6 +64,59 @@ def imports(path: Path, module: str | None = None) -> Iterator[str]:
 
 def sources(folder: str) -> list[Path]:
     return sorted((ROOT / folder).rglob('*.py'))
+
+
+def modules(folder: str) -> dict[str, Path]:
+    """The modules under ``folder`` by name (a package by its ``__init__.py``)."""
+    return {module_name(path): path for path in sources(folder)}
+
+
+def ours(name: str, known: dict[str, Path]) -> str | None:
+    """The module of ``known`` that the imported ``name`` loads (``a.b.C`` is ``a.b``'s), if
+    any."""
+    while name and name not in known:
+        name = name.rpartition('.')[0]
+    return name or None
+
+
+def module_graph(folder: str) -> dict[str, set[str]]:
+    """Module -> the modules of the same folder it imports."""
+    known = modules(folder)
+    return {name: {target for imported in imports(path)
+                   if (target := ours(imported, known)) not in (None, name)}
+            for name, path in known.items()}
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of ``graph`` with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return sorted(found)
 
 
 def violations(paths: list[Path], forbidden: tuple[str, ...],
@@ -86,7 +158,8 @@ def test_what_a_node_process_loads_never_imports_the_supervisor() -> None:
 SUPERVISOR_DECISIONS = ('states', 'watchdog', 'events', 'output', 'lineage', 'ports', 'recovery',
                         'poison', 'run_marker', 'config', 'process')
 """The supervisor's modules that decide and keep records; rclpy is reached through the ports
-(supervisor/ports.py), so their unit tests run on fakes."""
+(supervisor/ports.py), so their unit tests run on fakes. (Issue 39: ManagedNode's own module
+joins them when it is split out of supervisor.py.)"""
 
 
 @pytest.mark.parametrize('name', SUPERVISOR_DECISIONS)
@@ -95,12 +168,157 @@ def test_the_supervisors_decisions_import_no_rclpy(name: str) -> None:
     assert violations([path], ('rclpy',)) == []
 
 
-def test_the_evaluations_harness_is_its_bottom_layer() -> None:
-    lower = [*sources('rory_eval/harness'), ROOT / 'rory_eval' / 'targets.py',
-             ROOT / 'rory_eval' / 'metrics.py']
-    upper = tuple(f'rory_eval.{p}' for p in ('bench', 'faults', 'demos', 'evaluation',
-                                             'quality'))
-    assert violations(lower, upper) == []
+KNOWN_RCLPY_CARRIERS = {
+    # Issue 39, "protocol.py becomes a package": its QoS profiles (rclpy.qos) load with every
+    # name of it, and rory_runtime/__init__.py imports it, so every module of rory_runtime
+    # loads rclpy today. That line is another change's; drop this one when it is done.
+    'rory_runtime.protocol': 'rclpy.qos, loaded with every name of the protocol',
+    # Issue 39, "A RingPort Protocol replaces the concrete Ring in ports and recovery": ports.py
+    # and recovery.py import the Ring (rclpy) for their annotations.
+    'rory_runtime.supervisor.ring': 'the concrete Ring, for annotations',
+}
+"""rory_runtime's modules through which a decision module loads rclpy today, with why: the
+test below does not look past them (it still looks at everything else the decisions load), and
+fails once one of them is no longer needed, so that the exception goes."""
+
+
+def _under(name: str, prefixes: Iterable[str]) -> bool:
+    return any(name == p or name.startswith(p + '.') for p in prefixes)
+
+
+def rclpy_paths(start: str, carriers: Iterable[str] | None = None) -> list[str]:
+    """How loading rory_runtime's module ``start`` and calling its functions loads rclpy,
+    through rory_runtime's own modules: each chain ``start -> ... -> rclpy...``, not looking
+    past the ``carriers`` (by default the known ones).
+
+    ``start``'s imports are all read (also inside its functions); of every module it then
+    loads, what runs when that is loaded (its imports outside functions), and its packages'
+    ``__init__.py``, which Python loads first."""
+    stop = tuple(KNOWN_RCLPY_CARRIERS if carriers is None else carriers)
+    known = modules('rory_runtime')
+    chains: list[str] = []
+    came_from: dict[str, str | None] = {start: None}
+    queue = [start]
+    while queue:
+        here = queue.pop(0)
+        route = [here]
+        while (back := came_from[route[-1]]) is not None:
+            route.append(back)
+        route.reverse()
+        parts = here.split('.')
+        parents = ['.'.join(parts[:i]) for i in range(1, len(parts))]
+        for name in [*imports(known[here], here, at_load=here != start), *parents]:
+            if _under(name, ('rclpy',)):
+                chains.append(' -> '.join([*route, name]))
+            elif ((target := ours(name, known)) is not None and target not in came_from
+                  and not _under(target, stop)):
+                came_from[target] = here
+                queue.append(target)
+    return sorted(set(chains))
+
+
+@pytest.mark.parametrize('name', SUPERVISOR_DECISIONS)
+def test_the_supervisors_decisions_load_no_rclpy_through_other_modules(name: str) -> None:
+    assert rclpy_paths(f'rory_runtime.supervisor.{name}') == []
+
+
+@pytest.mark.parametrize('carrier', KNOWN_RCLPY_CARRIERS)
+def test_each_known_rclpy_carrier_is_still_needed(carrier: str) -> None:
+    others = [c for c in KNOWN_RCLPY_CARRIERS if c != carrier]
+    through = [chain for name in SUPERVISOR_DECISIONS
+               for chain in rclpy_paths(f'rory_runtime.supervisor.{name}', others)
+               if any(_under(step, (carrier,)) for step in chain.split(' -> '))]
+    assert through, f'no decision module loads rclpy through {carrier} any more: drop it'
+
+
+def test_the_rclpy_paths_follow_packages_and_load_time_imports(tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch,
+                                                               ) -> None:
+    root = tmp_path / 'rory_runtime'
+    (root / 'supervisor').mkdir(parents=True)
+    (root / '__init__.py').write_text('from .base import X\n\ndef later():\n    import rclpy\n')
+    (root / 'base.py').write_text('import rclpy.qos\n')
+    (root / 'supervisor' / '__init__.py').write_text('')
+    (root / 'supervisor' / 'decide.py').write_text(
+        'from .helper import f\n\ndef g():\n    from .. import tool\n')
+    (root / 'supervisor' / 'helper.py').write_text('def f():\n    import rclpy.node\n')
+    (root / 'tool.py').write_text('from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n'
+                                  '    from rclpy.node import Node\n')
+    monkeypatch.setattr(sys.modules[__name__], 'ROOT', tmp_path)
+    monkeypatch.setattr(sys.modules[__name__], 'KNOWN_RCLPY_CARRIERS', {})
+    assert rclpy_paths('rory_runtime.supervisor.decide') == [
+        'rory_runtime.supervisor.decide -> rory_runtime -> rory_runtime.base -> rclpy.qos',
+        'rory_runtime.supervisor.decide -> rory_runtime.tool -> rclpy.node',
+        'rory_runtime.supervisor.decide -> rory_runtime.tool -> rclpy.node.Node',
+    ]
+
+
+EVAL_LAYERS = (
+    ('targets', 'metrics', 'lean_install'),
+    ('harness',),
+    ('quality',),
+    ('runs',),
+    ('bench', 'faults'),
+    ('evaluation',),
+    ('demos',),
+)
+"""rory_eval's modules and packages, bottom first, as the module map's last rows list them: each
+imports only from itself and the rows before its own; two sharing a row import neither
+the other."""
+
+
+def eval_part(name: str) -> str | None:
+    """The entry of :data:`EVAL_LAYERS` an imported ``rory_eval...`` name belongs to."""
+    parts = name.split('.')
+    return parts[1] if len(parts) > 1 and parts[0] == 'rory_eval' else None
+
+
+def test_every_part_of_the_evaluation_has_a_layer() -> None:
+    here = ROOT / 'rory_eval'
+    parts = {p.stem for p in here.glob('*.py') if p.stem != '__init__'}
+    parts |= {p.name for p in here.iterdir() if (p / '__init__.py').exists()}
+    assert parts == {part for row in EVAL_LAYERS for part in row}
+
+
+def test_the_evaluation_imports_only_downward() -> None:
+    layer = {part: i for i, row in enumerate(EVAL_LAYERS) for part in row}
+    found = []
+    for path in sources('rory_eval'):
+        mine = eval_part(module_name(path))
+        for name in imports(path):
+            theirs = eval_part(name)
+            if mine is None or theirs is None or theirs == mine:
+                continue
+            if theirs not in layer or layer[theirs] >= layer[mine]:
+                found.append(f'{path.relative_to(ROOT)} ({mine}) imports {name}')
+    assert sorted(set(found)) == []
+
+
+def module_map_rows() -> list[list[str]]:
+    """The cells of each row of docs/architecture.md's module map, top to bottom."""
+    text = (ROOT / 'docs' / 'architecture.md').read_text()
+    section = text.split('\n## Module map\n', 1)[1].split('\n## ', 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith('|')]
+    assert rows[0].startswith('| layer |') and set(rows[1]) <= set('|-')
+    return [[cell.strip() for cell in row.strip('|').split(' | ')] for row in rows[2:]]
+
+
+def test_the_module_maps_last_rows_are_the_evaluations_layers_in_order() -> None:
+    # A row imports from the rows above it; rory_eval stands on all the others.
+    named = [set(re.findall(r'`rory_eval/(\w+)(?:/|\.py)`', cells[1]))
+             for cells in module_map_rows()]
+    assert named[-len(EVAL_LAYERS):] == [set(row) for row in EVAL_LAYERS]
+    assert not any(named[:-len(EVAL_LAYERS)])
+
+
+@pytest.mark.parametrize('folder', ['sim', 'rory_eval'])
+def test_no_import_cycle_between_modules(folder: str) -> None:
+    assert cycles(module_graph(folder)) == []
+
+
+def test_cycles_are_found() -> None:
+    graph = {'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a', 'e'}, 'e': {'d'}, 'f': set()}
+    assert cycles(graph) == [['a', 'b', 'c'], ['d', 'e']]
 
 
 @pytest.mark.parametrize('folder', ['sim', 'targets'])

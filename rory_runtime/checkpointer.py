@@ -25,7 +25,7 @@ from rclpy.node import Node
 from . import chunks, codec, event_clock, freshness, node_lifecycle, node_parameters
 from .errors import CheckpointError, CodecError, LogError
 from .log import SegmentStore, SegmentWriter
-from .protocol import CheckpointStatus, Method, Status
+from .protocol import CheckpointFailure, CheckpointStatus, Method, Status
 from .state import CheckpointSpec, read_state
 from .store import Checkpoint, CheckpointStore
 from .threads import name_this_thread
@@ -88,7 +88,9 @@ class Checkpointer:
         lock: The runtime's lock, under which every user callback runs.
         checkpoints: Where checkpoints are written.
         segments: Where log segments are written.
-        error: Reports an error (the runtime's ERROR status).
+        error: Reports an error (the runtime's ERROR status): a checkpoint not taken, when
+            ``failed`` is not given.
+        failed: Reports a checkpoint not taken, and why (the runtime's ERROR status, typed).
         status: Sends a status to the supervisor (CHECKPOINT).
         timers: The node's timers as a checkpoint keeps them (``NodeTimers.snapshot``), read
             under the lock with the variables.
@@ -99,6 +101,7 @@ class Checkpointer:
         lock: threading.RLock, checkpoints: CheckpointStore, segments: SegmentStore, *,
         error: Callable[[str], None], status: Callable[[Status], None],
         timers: Callable[[Node], bytes] | None = None,
+        failed: Callable[[str, CheckpointFailure], None] | None = None,
     ) -> None:
         self.spec = spec
         self.method = method
@@ -107,7 +110,7 @@ class Checkpointer:
         self.lock = lock
         self.checkpoints = checkpoints
         self.segments = segments
-        self._error = error
+        self._failed = failed or (lambda message, _why: error(message))
         self._status = status
         self._timers = timers
         self.writer: SegmentWriter | None = None
@@ -185,7 +188,7 @@ class Checkpointer:
             try:
                 snapshot = codec.snapshot_vars(read_state(self.spec, node), self.array_pool)
             except CodecError as err:
-                self._error(f'checkpoint skipped: {err}')
+                self._failed(f'checkpoint skipped: {err}', CheckpointFailure.SKIPPED)
                 return None
             cut, writer = self.rotate() if self.method.logs else (None, None)
             window_copy = {topic: w.snapshot() for topic, w in windows.items()}
@@ -222,7 +225,7 @@ class Checkpointer:
                 parts = self.chunker.split(codec.pack_pieces(snapshot))
                 self.checkpoints.write(ckpt, parts=parts)
             except (CodecError, OSError, CheckpointError) as err:
-                self._error(f'checkpoint {seq} not written: {err}')
+                self._failed(f'checkpoint {seq} not written: {err}', CheckpointFailure.NOT_WRITTEN)
                 return
             finally:
                 # Only now: the chunks written were views of the snapshot's buffers.

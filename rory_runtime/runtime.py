@@ -77,6 +77,7 @@ from .protocol import (
     ENV_SECRET,
     ENV_STATUS,
     ENV_STORE,
+    CheckpointFailure,
     ErrorStatus,
     HelloStatus,
     InputsStatus,
@@ -255,6 +256,7 @@ class NodeRuntime:
         self.checkpointer = Checkpointer(
             spec, self.method, env.node_id, env.incarnation, self.lock, self.checkpoints,
             self.segments, error=self._error, status=self._status, timers=self.timers.snapshot,
+            failed=self._error,
         )
         atexit.register(self.close)
 
@@ -864,7 +866,9 @@ class NodeRuntime:
             status, self.env.node_id, self.env.incarnation, key=self.env.secret,
             sent_ns=time.time_ns()))
 
-    def _error(self, message: str) -> None:
+    def _error(self, message: str, checkpoint: CheckpointFailure | None = None) -> None:
+        """Log ``message`` and send it as an ERROR status, once; ``checkpoint``: it says a
+        checkpoint was not taken, and why (the supervisor reads that, not the message)."""
         if message in self.reported_errors:
             return
         self.reported_errors.add(message)
@@ -874,7 +878,7 @@ class NodeRuntime:
             # With its context shut down (rclpy's SIGINT handler does it before the exit-time
             # checkpoint), the node's logger adds a failure to publish on /rosout.
             _logger.error('[rory] %s', message)
-        self._status(ErrorStatus(message=message))
+        self._status(ErrorStatus(message=message, checkpoint=checkpoint))
 
     def close(self) -> None:
         """Finish background I/O and seal the open segment, so a clean exit leaves complete

@@ -80,6 +80,7 @@ from .records import (
 )
 from .signing import TAG_BYTES
 from .statuses import (
+    CheckpointFailure,
     CheckpointStatus,
     ErrorStatus,
     HelloStatus,
@@ -137,6 +138,7 @@ __all__ = [
     'TAG_BYTES',
     'TIMER_RECORD',
     'Alive',
+    'CheckpointFailure',
     'CheckpointStatus',
     'Envelope',
     'EnvelopeKind',

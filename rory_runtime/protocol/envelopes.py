@@ -36,8 +36,13 @@ _CDR_PREFIX = struct.Struct('<4sIII')  # encapsulation, dim count, data_offset, 
 CDR_LE: Final = b'\x00\x01\x00\x00'  # CDR encapsulation, little endian (records.py's too)
 _HEAD = struct.Struct('<2sBBI')
 _MAGIC = b'RY'
-_VERSION = 1
-_SIGNED = 2  # version 1 followed by an HMAC tag of the payload
+# The version of what a node and its supervisor say to each other, statuses included: a node
+# and a supervisor of different versions refuse each other's envelopes from the first SYNC on,
+# not at the first status one of them reads otherwise. Each version has two numbers, plain and
+# signed. 1 and 2: the first; 3 and 4: since an ERROR status says whether and why a checkpoint
+# was not taken (statuses.CheckpointFailure).
+_VERSION = 3
+_SIGNED = 4  # version 3 followed by an HMAC tag of the payload
 _SYNC = struct.Struct('<Q')
 _MSG = struct.Struct('<BqqIH')
 _RELEASE = struct.Struct('<QQ')

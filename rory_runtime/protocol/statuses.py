@@ -121,6 +121,12 @@ class _Fields:
             raise self._wrong(name, f'one of {", ".join(k.value for k in kind)}', value)
         return kind(value)
 
+    def optional_choice(self, name: str, kind: type[_E]) -> _E | None:
+        value = self._get(name)
+        if value is not None and value not in {k.value for k in kind}:
+            raise self._wrong(name, f'one of {", ".join(k.value for k in kind)} or null', value)
+        return None if value is None else kind(value)
+
     def texts(self, name: str) -> tuple[str, ...]:
         value = self._get(name)
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
@@ -449,16 +455,33 @@ class InputsStatus:
         return cls(inputs=fields.inputs('inputs'))
 
 
+class CheckpointFailure(enum.StrEnum):
+    """Why a checkpoint was not taken (``Checkpointer.take``): an ERROR status says so."""
+
+    SKIPPED = 'skipped'  # its snapshot was refused (a variable cannot be read or packed)
+    NOT_WRITTEN = 'not_written'  # the snapshot was taken, its file not written (e.g. disk full)
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ErrorStatus:
     """Something the operator must know (e.g. a variable that cannot be saved)."""
 
     kind: ClassVar[StatusKind] = StatusKind.ERROR
     message: str
+    # The checkpoint this error says was not taken, and why; None: the error is about something
+    # else. The supervisor reads :attr:`checkpoint_failed`, never the message.
+    checkpoint: CheckpointFailure | None = None
+
+    @property
+    def checkpoint_failed(self) -> bool:
+        """Whether a checkpoint was not taken (the node's checkpoints are failing until one
+        is written)."""
+        return self.checkpoint is not None
 
     def to_json(self) -> dict[str, Any]:
         """The fields as they travel."""
-        return {'message': self.message}
+        return {'message': self.message,
+                'checkpoint': None if self.checkpoint is None else self.checkpoint.value}
 
     @classmethod
     def from_fields(cls, fields: _Fields) -> ErrorStatus:
@@ -467,7 +490,8 @@ class ErrorStatus:
         Raises:
             ProtocolError: A field missing or of the wrong type.
         """
-        return cls(message=fields.text('message'))
+        return cls(message=fields.text('message'),
+                   checkpoint=fields.optional_choice('checkpoint', CheckpointFailure))
 
 
 Status = (HelloStatus | SyncedStatus | ReleasedStatus | OpenedStatus | CheckpointStatus

@@ -7,9 +7,11 @@ store is real, and the I/O thread is the runtime's own."""
 
 from __future__ import annotations
 
+import errno
 import logging
 import threading
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ from rclpy.clock_type import ClockType
 from rclpy.parameter import Parameter
 
 from rory_runtime import chunk_file, chunks, codec
-from rory_runtime.protocol import Method, Mode
+from rory_runtime.protocol import CheckpointFailure, ErrorStatus, Method, Mode, Status
 from rory_runtime.runtime import NodeRuntime, RuntimeEnv
 from rory_runtime.state import CheckpointSpec
 
@@ -171,3 +173,34 @@ def test_after_a_callback_raised_no_checkpoint_is_taken_at_exit(tmp_path: Path) 
         sub.callback(bytes(serialize_message(Int64(data=1))), info)  # type: ignore[operator]
     rt.close()
     assert rt.checkpoints.latest_valid() is None
+
+
+def test_a_checkpoint_not_taken_is_an_error_status_that_says_so_and_why(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The supervisor reads ``checkpoint`` (ErrorStatus.checkpoint_failed), not the message."""
+    node = _Node()
+    node.context = SimpleNamespace(ok=lambda: True)  # type: ignore[attr-defined]  # rclpy's
+    rt = _released(tmp_path, node)
+    sent: list[Status] = []
+    rt._status = sent.append  # type: ignore[method-assign]
+    try:
+        del node.ticks  # a key variable that cannot be read: the snapshot is refused
+        rt.checkpoint_tick()
+        _wait_for_io(rt)
+        node.ticks = 3
+
+        def full(*_: object, **__: object) -> None:
+            raise OSError(errno.ENOSPC, 'No space left on device')
+
+        monkeypatch.setattr(rt.checkpoints, 'write', full)  # the snapshot is taken, not written
+        rt.checkpoint_tick()
+        _wait_for_io(rt)
+        rt._error('cannot log a message of /scan: disk full')  # an error of another kind
+    finally:
+        rt.close()
+    errors = [s for s in sent if isinstance(s, ErrorStatus)]
+    assert [(e.checkpoint, e.checkpoint_failed) for e in errors[:3]] == [
+        (CheckpointFailure.SKIPPED, True), (CheckpointFailure.NOT_WRITTEN, True), (None, False)]
+    assert errors[0].message.startswith("checkpoint skipped: variable 'ticks'")
+    assert errors[1].message == 'checkpoint 1 not written: [Errno 28] No space left on device'

@@ -24,6 +24,7 @@ from rory_runtime.protocol import (
     SEQ_MASK,
     TAG_BYTES,
     Alive,
+    CheckpointFailure,
     CheckpointStatus,
     EnvelopeKind,
     ErrorStatus,
@@ -114,7 +115,7 @@ def test_alive_round_trips() -> None:
 
 def test_alive_is_a_bare_head() -> None:
     # What the relay sends every RELAY_KEEPALIVE_S when idle: no body at all.
-    assert payload_of(pack_alive(7)) == struct.pack('<2sBBI', b'RY', 1, EnvelopeKind.ALIVE, 7)
+    assert payload_of(pack_alive(7)) == struct.pack('<2sBBI', b'RY', 3, EnvelopeKind.ALIVE, 7)
     assert EnvelopeKind.ALIVE == 5 and 0 < RELAY_KEEPALIVE_S <= 0.5
 
 
@@ -269,7 +270,7 @@ def test_cutting_msg_data_only_shortens_the_data() -> None:
 
 def test_short_envelope_padded_to_24_bytes_raises_protocol_error() -> None:
     # 5 bytes of payload ('RY', version, kind, 1 byte of incarnation) + 3 bytes DDS padding.
-    raw = wrap(b'RY\x01\x01\x00') + b'\x00\x00\x00'
+    raw = wrap(b'RY\x03\x01\x00') + b'\x00\x00\x00'
     assert len(raw) == 24
     with pytest.raises(ProtocolError):
         unpack(raw)
@@ -282,7 +283,9 @@ def test_wrong_magic_raises_protocol_error(magic: bytes) -> None:
         unpack(wrap(magic + payload[2:]))
 
 
-@pytest.mark.parametrize('version', [0, 3, 255])
+# 1 and 2: the first version, plain and signed (before error statuses said which checkpoint
+# failed); a node and a supervisor of different versions do not talk.
+@pytest.mark.parametrize('version', [0, 1, 2, 5, 255])
 def test_wrong_version_raises_protocol_error(version: int) -> None:
     payload = bytearray(payload_of(pack_sync(1, 2)))
     payload[2] = version
@@ -355,7 +358,7 @@ def envelope_like(draw: st.DrawFn) -> bytes:
             st.binary(max_size=12),
             st.builds(
                 lambda version, kind, inc: b'RY' + bytes([version, kind]) + inc,
-                st.sampled_from([1, 1, 1, 0, 2]),
+                st.sampled_from([3, 3, 3, 0, 4, 1]),
                 st.sampled_from([1, 2, 3, 0, 4]),
                 st.binary(min_size=0, max_size=4),
             ),
@@ -412,7 +415,12 @@ STATUSES: dict[str, Status] = {
                                           total_ms=1.0),
     'switched': SwitchedStatus(topic='/numbers', passed_by_relay=(4, 5, 9), live_only=(2, 3)),
     'inputs': InputsStatus(inputs=TWO_INPUTS),
-    'error': ErrorStatus(message='checkpoint skipped: pose: \u00fc "quoted" \\ \U0001f680'),
+    'error': ErrorStatus(message='checkpoint skipped: pose: \u00fc "quoted" \\ \U0001f680',
+                         checkpoint=CheckpointFailure.SKIPPED),
+    'error_not_written': ErrorStatus(
+        message='checkpoint 12 not written: [Errno 28] No space left on device',
+        checkpoint=CheckpointFailure.NOT_WRITTEN),
+    'error_other': ErrorStatus(message='cannot log a message of /scan: disk full'),
 }
 """Statuses of every kind, as a node sends them (from node ``integrator``, incarnation 3)."""
 
@@ -489,11 +497,24 @@ PINNED = {
         '"type":"nav_msgs/msg/OccupancyGrid"}],"kind":"inputs","node":"integrator",'
         '"sent_ns":1700000000123456789,"sig":"667dfa0bd94b841c4a5effa3fb068ad5"}'
     ),
+    # checkpoint added since (issue 39): whether and why the checkpoint the error is about was
+    # not taken; the supervisor reads it instead of matching the message.
     'error': (
-        '{"incarnation":3,"kind":"error",'
+        '{"checkpoint":"skipped","incarnation":3,"kind":"error",'
         '"message":"checkpoint skipped: pose: \\u00fc \\"quoted\\" \\\\ \\ud83d\\ude80",'
         '"node":"integrator","sent_ns":1700000000123456789,'
-        '"sig":"3eb9fde0adf0280d45f9e5964b046bd0"}'
+        '"sig":"369eb33f28fc47bd0ed455ec6442dabe"}'
+    ),
+    'error_not_written': (
+        '{"checkpoint":"not_written","incarnation":3,"kind":"error",'
+        '"message":"checkpoint 12 not written: [Errno 28] No space left on device",'
+        '"node":"integrator","sent_ns":1700000000123456789,'
+        '"sig":"35e1882f8ee54b21305e9675307d0138"}'
+    ),
+    'error_other': (
+        '{"checkpoint":null,"incarnation":3,"kind":"error",'
+        '"message":"cannot log a message of /scan: disk full","node":"integrator",'
+        '"sent_ns":1700000000123456789,"sig":"197842cb9dfdc220e68439793112248b"}'
     ),
 }
 """Each of STATUSES signed with KEY, as written by encode_status before statuses were typed
@@ -579,6 +600,9 @@ def test_decode_status_refuses_malformed_text(text: str) -> None:
         ('switched', {'live_only': None}, 'switched status lacks live_only'),
         ('switched', {'live_only': 7}, 'switched status: live_only must be an array of integers'),
         ('error', {'message': 5}, 'error status: message must be a string, not an integer'),
+        ('error', {'checkpoint': None}, 'error status lacks checkpoint'),
+        ('error', {'checkpoint': 'late'},
+         'error status: checkpoint must be one of skipped, not_written or null, not a string'),
     ],
 )
 def test_a_field_missing_or_of_the_wrong_type_is_named(
@@ -852,3 +876,12 @@ def test_loading_the_protocol_loads_no_rclpy() -> None:
              'from rory_runtime.protocol import REPLAY_QOS\n'
              'assert "rclpy.qos" in sys.modules\n')
     subprocess.run([sys.executable, '-c', probe], check=True, timeout=60)
+
+
+@pytest.mark.parametrize(('name', 'failed'), [
+    ('error', True), ('error_not_written', True), ('error_other', False)])
+def test_an_error_status_says_whether_a_checkpoint_was_not_taken(name: str, failed: bool) -> None:
+    status = decode_status(PINNED[name], KEY).status
+    assert isinstance(status, ErrorStatus) and status.checkpoint_failed is failed
+    # Read from its field, never from its message.
+    assert dataclasses.replace(status, checkpoint=None).checkpoint_failed is False

@@ -4,12 +4,9 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Final
+from typing import Any, Final, Protocol
 
 from ..errors import ProtocolError
-
-if TYPE_CHECKING:
-    from rclpy.qos import QoSProfile
 
 # Publisher sequence numbers are stored in MCAP's u32 ``sequence`` field; identities use the
 # same truncation everywhere so that a live message and its logged copy compare equal.
@@ -36,6 +33,24 @@ def message_id(info: dict[str, Any]) -> MessageId:
 
 
 # Describing a node's inputs, so the supervisor can hold matching readers (the ring).
+
+
+class QosProfileLike(Protocol):
+    """What :meth:`InputSpec.from_qos` reads of an rclpy ``QoSProfile``: named by its shape, so
+    that the protocol neither loads nor type-checks with rclpy."""
+
+    @property
+    def history(self) -> object: ...
+
+    @property
+    def reliability(self) -> object: ...
+
+    @property
+    def durability(self) -> object: ...
+
+    @property
+    def depth(self) -> int: ...
+
 
 @dataclass(frozen=True)
 class InputSpec:
@@ -85,10 +100,10 @@ class InputSpec:
         )
 
     @classmethod
-    def from_qos(cls, topic: str, msgtype: str, qos: QoSProfile) -> InputSpec:
-        """Describe a subscription from its QoS profile."""
-        # Here, not at the top: a module that reads statuses loads no rclpy (the node's side,
-        # which calls this, has it loaded already).
+    def from_qos(cls, topic: str, msgtype: str, qos: QosProfileLike) -> InputSpec:
+        """Describe a subscription from its QoS profile (an rclpy ``QoSProfile``)."""
+        # Here, not at the top: the protocol loads no rclpy (the node's side, which calls this,
+        # has it loaded already).
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 
         keep_all = qos.history == HistoryPolicy.KEEP_ALL

@@ -10,15 +10,13 @@ network, e.g. one per robot under ``-r __ns:=/robot1``, never share a topic):
     no order across topics, one shadow topic per input would not). Reliable, volatile, keep-all.
 
 The QoS (:data:`REPLAY_QOS`, an rclpy ``QoSProfile``) is made at its first use, so that a
-module that only reads statuses or envelopes (the supervisor's decisions) loads no rclpy.
+module that only reads statuses or envelopes (the supervisor's decisions) loads no rclpy; it is
+typed ``Any`` so that type-checking the protocol does not load rclpy either.
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any, Final
-
-if TYPE_CHECKING:
-    from rclpy.qos import QoSProfile
 
 DEFAULT_CHANNEL: Final = '/rory'
 
@@ -39,13 +37,13 @@ def replay_topic(node_id: str, incarnation: int, channel: str = DEFAULT_CHANNEL)
     return f'{channel}/{node_id}/replay_{incarnation}'
 
 
-REPLAY_QOS: QoSProfile
+REPLAY_QOS: Any  # an rclpy QoSProfile
 """The shadow topic's QoS. Keep-all: a reliable writer then resends whatever a late-matching
 reader has not acknowledged, and nothing is dropped however far the node falls behind. Made at
 its first read (:func:`__getattr__`)."""
 
 
-def _replay_qos() -> QoSProfile:
+def _replay_qos() -> Any:
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     return QoSProfile(

@@ -38,13 +38,31 @@ def _missing_extra(command: str) -> str:
 FORWARDED_SIGNALS = ('SIGINT', 'SIGTERM', 'SIGHUP', 'SIGQUIT')
 """The signals ``rory sim`` passes on to the simulator it runs."""
 
+KEYBOARD_SIGNALS = ('SIGINT', 'SIGQUIT')
+"""Ctrl-C's and Ctrl-\\'s: a terminal sends them to its foreground process group, child included."""
+
+
+def _in_the_terminals_foreground() -> bool:
+    """Whether this process's group is the foreground group of the terminal it runs in."""
+    import os
+
+    for fd in (0, 1, 2):
+        try:
+            return os.tcgetpgrp(fd) == os.getpgrp()
+        except OSError:  # not a terminal, or not ours
+            continue
+    return False
+
 
 def _run_program(command: list[str]) -> int:
-    """Run ``command`` as a child in the foreground, as if this process were it: the signals
-    in :data:`FORWARDED_SIGNALS` that reach this process are passed on to the child (Ctrl-C reaches
-    both, being sent to the terminal's whole process group; the simulator stops once on the
-    first and ignores the repeat), and the child's end is this process's: its exit code, or,
-    killed by a signal, the same signal."""
+    """Run ``command`` as a child in the foreground, as if this process were it.
+
+    The signals in :data:`FORWARDED_SIGNALS` that reach this process are passed on to the
+    child, each once: a keyboard signal (Ctrl-C, Ctrl-\\) while this process is in its
+    terminal's foreground is not, since the terminal sent it to the child too (the same process
+    group); `kill -INT` of this process alone there therefore does nothing, while SIGTERM always
+    goes on. The child's end is this process's: its exit code, or, killed by a signal, the same
+    signal."""
     import contextlib
     import os
     import signal
@@ -53,11 +71,13 @@ def _run_program(command: list[str]) -> int:
 
     child: subprocess.Popen[bytes] | None = None
     early: list[int] = []
+    keyboard = {getattr(signal, name) for name in KEYBOARD_SIGNALS}
 
     def forward(signum: int, _frame: object) -> None:
         if child is None:
-            early.append(signum)
-        elif child.returncode is None:
+            early.append(signum)  # before the child: it has it from no one
+        elif child.returncode is None and not (
+                signum in keyboard and _in_the_terminals_foreground()):  # from the terminal
             child.send_signal(signum)
 
     # Only the main thread can set handlers; called from another, the child gets no signals.
@@ -91,8 +111,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     if argv[:1] == ['sim']:
         # The simulator (sim/, an extra) is a program of its own with its own parser
-        # (sim/cli.py): run, not imported, so that the runtime never loads it or MuJoCo.
-        return _run_program([sys.executable, '-m', 'sim', *argv[1:]])
+        # (sim/cli.py): run, not imported, so that the runtime never loads it or MuJoCo. -P:
+        # the installed sim, not a folder named sim where the command is typed.
+        return _run_program([sys.executable, '-P', '-m', 'sim', *argv[1:]])
     if argv[:1] == ['bundle']:
         from .bundle import bundle_main
 

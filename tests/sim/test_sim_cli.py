@@ -4,6 +4,7 @@ them as a child process."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -85,12 +86,17 @@ def test_rory_sim_runs_the_simulator_cli_as_a_child(capfd: pytest.CaptureFixture
         capfd.readouterr().err)
 
 
-def test_rory_sim_never_imports_the_simulator() -> None:
+def test_rory_sim_never_imports_the_simulator(tmp_path: Path) -> None:
+    # Typed in a folder that holds a `sim` of its own: the child still runs the installed one.
+    (tmp_path / 'sim').mkdir()
+    (tmp_path / 'sim' / '__init__.py').write_text('')
+    (tmp_path / 'sim' / '__main__.py').write_text('print("not the simulator")\n')
+    env = {**os.environ, 'PYTHONPATH': str(Path(__file__).resolve().parents[2])}
     done = subprocess.run(
         [sys.executable, '-c', 'import sys\nfrom rory_runtime.cli import main\n'
          "code = main(['sim', 'list'])\n"
          "assert not [m for m in sys.modules if m == 'sim' or m.startswith('sim.')]\n"
          'sys.exit(code)'],
-        capture_output=True, text=True, timeout=120)
+        capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env)
     assert done.returncode == 0, done.stderr
-    assert 'office_small' in done.stdout
+    assert 'office_small' in done.stdout and 'not the simulator' not in done.stdout

@@ -169,10 +169,6 @@ def test_the_supervisors_decisions_import_no_rclpy(name: str) -> None:
 
 
 KNOWN_RCLPY_CARRIERS = {
-    # Issue 39, "protocol.py becomes a package": its QoS profiles (rclpy.qos) load with every
-    # name of it, and rory_runtime/__init__.py imports it, so every module of rory_runtime
-    # loads rclpy today. That line is another change's; drop this one when it is done.
-    'rory_runtime.protocol': 'rclpy.qos, loaded with every name of the protocol',
     # Issue 39, "A RingPort Protocol replaces the concrete Ring in ports and recovery": ports.py
     # and recovery.py import the Ring (rclpy) for their annotations.
     'rory_runtime.supervisor.ring': 'the concrete Ring, for annotations',

@@ -13,7 +13,6 @@ import logging
 import os
 import queue
 import random
-import re
 import secrets
 import shutil
 import signal
@@ -106,9 +105,6 @@ _QUIET = frozenset({NodeState.RUNNING, NodeState.EXITED, NodeState.FATAL})
 STANDBY_DELAY = 1.0
 """Seconds a node runs after its (re)start before its next standby is started: the standby's
 imports must not compete with the node's own start or recovery for the CPU."""
-
-# The node's ERROR statuses saying a checkpoint was not taken (checkpointer.py, Checkpointer.take).
-CHECKPOINT_FAILURE_RE = re.compile(r'checkpoint (skipped|\d+ not written)')
 
 _LIVE = frozenset({
     NodeState.STARTING, NodeState.ARMING, NodeState.RUNNING, NodeState.RESTORING,
@@ -501,7 +497,7 @@ class ManagedNode:
         elif isinstance(status, InputsStatus):
             self._on_inputs(status)
         elif isinstance(status, ErrorStatus):
-            if CHECKPOINT_FAILURE_RE.match(status.message):
+            if status.checkpoint_failed:  # a checkpoint not taken (Checkpointer.take)
                 self.current.checkpoint_error = status.message
             _logger.error('%s %s: %s', LOG_PREFIX, self.id, status.message)
             self.sup.events_log.write('error', self.id, message=status.message)

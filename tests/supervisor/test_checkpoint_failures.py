@@ -55,3 +55,11 @@ def test_any_other_error_leaves_the_checkpoints_as_they_were(tmp_path: Path,
     h.status(SKIPPED)
     h.status(ErrorStatus(message=message))
     assert h.node.current.checkpoint_error == SKIPPED.message
+
+
+def test_the_supervisor_reads_the_field_not_the_message(tmp_path: Path) -> None:
+    h = _running(tmp_path)
+    h.status(ErrorStatus(message=SKIPPED.message))  # the words of a failure, not its kind
+    assert h.node.current.checkpoint_error is None
+    h.status(ErrorStatus(message='the disk is full', checkpoint=CheckpointFailure.NOT_WRITTEN))
+    assert h.node.current.checkpoint_error == 'the disk is full'

@@ -8,7 +8,6 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from rory_runtime.freshness import Verdict
 from rory_runtime.supervisor.diagnostics import NodeHealth, level_of, node_status
 from rory_runtime.supervisor.states import NodeState
-from rory_runtime.supervisor.supervisor import CHECKPOINT_FAILURE_RE
 
 
 def _health(state: NodeState, **kw: object) -> NodeHealth:
@@ -125,13 +124,3 @@ def test_a_running_node_whose_checkpoints_fail_is_an_error_until_one_succeeds() 
 def test_checkpoint_health_does_not_change_other_states() -> None:
     status = node_status(_health(NodeState.FATAL, checkpoint_error='checkpoint skipped: x'))
     assert status.level == DiagnosticStatus.ERROR and 'gave up' in status.message
-
-
-@pytest.mark.parametrize(('message', 'failing'), [
-    ("checkpoint skipped: variable 'seen' is a defaultdict", True),
-    ('checkpoint 12 not written: [Errno 28] No space left on device', True),
-    ('checkpoint refused: /store/n/checkpoints/0000000003.ckpt: bad checksum', False),
-    ('cannot log a message of /scan: disk full', False),
-])
-def test_which_node_errors_say_a_checkpoint_was_not_taken(message: str, failing: bool) -> None:
-    assert bool(CHECKPOINT_FAILURE_RE.match(message)) == failing

@@ -33,3 +33,19 @@ def fast_rediscovery_env(environ: Mapping[str, str] | None = None) -> dict[str, 
         'FASTDDS_BUILTIN_TRANSPORTS': 'UDPv4',
         'FASTRTPS_DEFAULT_PROFILES_FILE': str(files.joinpath('fast_rediscovery.xml')),
     }
+
+
+PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+"""Where Fast DDS reads its default profiles from (either name)."""
+
+
+def node_profile_env(environ: Mapping[str, str]) -> dict[str, str]:
+    """For a node process or standby started under ``environ``: RORY's node variant of the
+    profile ``environ`` names, if it names one of RORY's own (``fast_rediscovery*_node.xml``:
+    builtin writers asynchronous, so a cold node hears the supervisor's answer to its first
+    announcement; see the file). A profile of the operator's own is left as it is: empty.
+    """
+    files = resources.files(__package__)
+    own = {str(files.joinpath(name)): str(files.joinpath(name.replace('.xml', '_node.xml')))
+           for name in ('fast_rediscovery.xml', 'fast_rediscovery_localhost.xml')}
+    return {var: own[environ[var]] for var in PROFILE_VARIABLES if environ.get(var) in own}

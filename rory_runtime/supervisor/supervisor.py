@@ -34,7 +34,7 @@ from std_msgs.msg import UInt8MultiArray
 from std_srvs.srv import Trigger
 
 from .. import protocol
-from ..dds import fast_rediscovery_env
+from ..dds import fast_rediscovery_env, node_profile_env
 from ..errors import ProtocolError, RoryError
 from ..freshness import Verdict
 from ..freshness import describe as describe_verdict
@@ -267,6 +267,7 @@ class ManagedNode:
                 'PYTHONUNBUFFERED': '1',
             }
         )
+        env.update(node_profile_env(env))  # a cold node's discovery: rory_runtime/dds
         if self.cfg.checkpoint_interval is not None:
             env[protocol.ENV_INTERVAL] = repr(self.cfg.checkpoint_interval)
         else:

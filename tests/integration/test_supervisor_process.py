@@ -226,7 +226,7 @@ def test_under_localhost_rory_runs_no_shared_memory_and_still_hears_plain_peers(
     # /proc/PID/environ is the supervisor's at its start); so does the standby that will
     # replace it, a fork made with the same environment, on UDPv4 alone.
     hello = next(e for e in read_events(store) if e['kind'] == 'hello')
-    assert Path(hello['dds_profile']).name == 'fast_rediscovery_localhost.xml'
+    assert Path(hello['dds_profile']).name == 'fast_rediscovery_localhost_node.xml'
     wait_for(lambda: any(e['kind'] == 'standby' for e in read_events(store)), 20, 'a standby')
     standby_pid = next(e['pid'] for e in read_events(store) if e['kind'] == 'standby')
     wait_for(lambda: any(t.startswith('dds.udp') for t in _threads(standby_pid)), 20,

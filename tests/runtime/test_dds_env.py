@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from rory_runtime.dds import fast_rediscovery_env
+from rory_runtime.dds import fast_rediscovery_env, node_profile_env
 
 NS = {'f': 'http://www.eprosima.com'}
 
@@ -47,3 +47,30 @@ def test_the_two_profiles_agree_on_discovery_and_heartbeat() -> None:
     local = fast_rediscovery_env({'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'})
     assert len(timing(plain)) == 2
     assert timing(plain) == timing(local['FASTRTPS_DEFAULT_PROFILES_FILE'])
+
+
+@pytest.mark.parametrize('reach', ['LOCALHOST', 'SUBNET'])
+def test_a_node_gets_the_node_variant_of_rorys_profile(reach: str) -> None:
+    # The same settings, and its builtin writers asynchronous (a cold node hears the answers to
+    # its first announcement) with readers that ask for what they missed at once.
+    env = fast_rediscovery_env({'ROS_AUTOMATIC_DISCOVERY_RANGE': reach})
+    node = node_profile_env(env)
+    base = env['FASTRTPS_DEFAULT_PROFILES_FILE']
+    assert node == {'FASTRTPS_DEFAULT_PROFILES_FILE': base.replace('.xml', '_node.xml')}
+    plain, variant = ET.parse(base).getroot(), ET.parse(node[
+        'FASTRTPS_DEFAULT_PROFILES_FILE']).getroot()
+    for part in ('.//f:discovery_config', './/f:publisher', './/f:transport_descriptors'):
+        mine, theirs = plain.find(part, NS), variant.find(part, NS)
+        assert (mine is None) == (theirs is None)
+        if mine is not None and theirs is not None:
+            assert ET.canonicalize(ET.tostring(mine), strip_text=True) == ET.canonicalize(
+                ET.tostring(theirs), strip_text=True)
+    assert variant.findtext('.//f:throughputController/f:bytesPerPeriod', namespaces=NS) == '0'
+    assert plain.find('.//f:throughputController', NS) is None
+    assert variant.findtext('.//f:subscriber//f:initialAcknackDelay/f:nanosec',
+                            namespaces=NS) == '2000000'
+
+
+def test_an_operators_own_profile_is_left_to_the_node() -> None:
+    assert node_profile_env({'FASTRTPS_DEFAULT_PROFILES_FILE': '/etc/robot/dds.xml'}) == {}
+    assert node_profile_env({}) == {}

@@ -1,6 +1,7 @@
 """``make bench``: recovery time per method, side by side, median of N runs.
 
     python -m rory_eval.bench.recovery_bench [--runs 10] [--kill-at 3.0] [--out bench-out]
+        [--only rory-fast-cold rory-fast-warm ...]
 
 Each run is the integrator scenario (300 numbers at 50 Hz, checkpoint every 2 s) SIGKILLed
 ``--kill-at`` seconds in; methods are interleaved run by run so that machine load affects them
@@ -35,6 +36,11 @@ CONFIGS: tuple[Config, ...] = (
     ('rory', 'fast', True),
 )
 STEPS = ('restart_ms', 'restore_ms', 'sync_ms', 'replay_ms')
+
+
+def _name(config: Config) -> str:
+    method, pace, warm = config
+    return f'{method}-{pace}-{"warm" if warm else "cold"}'
 
 
 def _median(values: list[float]) -> str:
@@ -72,12 +78,15 @@ def main() -> None:
     parser.add_argument('--runs', type=int, default=10)
     parser.add_argument('--kill-at', type=float, default=3.0)
     parser.add_argument('--out', type=Path, default=Path('bench-out'))
+    parser.add_argument('--only', nargs='+', metavar='METHOD-PACE-START', choices=[
+        _name(c) for c in CONFIGS], help='these configurations alone (e.g. rory-fast-cold)')
     args = parser.parse_args()
     domain = int(os.environ.get('ROS_DOMAIN_ID', '78'))
-    results: dict[Config, list[ScenarioResult]] = {c: [] for c in CONFIGS}
+    configs = [c for c in CONFIGS if args.only is None or _name(c) in args.only]
+    results: dict[Config, list[ScenarioResult]] = {c: [] for c in configs}
     began = time.monotonic()
     for i in range(args.runs):
-        for method, pace, warm in CONFIGS:
+        for method, pace, warm in configs:
             result = run(
                 method, (Kill(after=args.kill_at),),
                 args.out / f'{method}-{pace}-{"warm" if warm else "cold"}',

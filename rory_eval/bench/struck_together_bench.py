@@ -29,34 +29,23 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
-import json
 import os
 import signal
 import statistics
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import rclpy
-import yaml
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.qos import QoSProfile
-from rclpy.signals import SignalHandlerOptions
-from std_msgs.msg import String
-
 from rory_eval.harness.scenario import (
     EXAMPLE,
     EventsFile,
+    StateReader,
     child_process,
+    integrators_config,
     joining,
-    prepare,
     scenario_env,
 )
 from rory_eval.harness.simrun import exit_on_sigterm
@@ -65,46 +54,6 @@ COUNT = 250  # 5 s at 50 Hz
 RATE = 50.0
 KILL_AFTER = 1.5  # s after every node has applied a number and the standbys are ready
 CONFIGS = ('pool', 'one standby')
-
-
-class StateReader:
-    """One participant reading every node's state topic; when each was last heard, and what."""
-
-    def __init__(self, domain_id: int, names: list[str]) -> None:
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id,
-                   signal_handler_options=SignalHandlerOptions.NO)
-        self.node = Node('struck_together_reader', context=self.context)
-        self.state: dict[str, Any] = {name: {} for name in names}
-        self.heard: dict[str, list[float]] = {name: [] for name in names}
-        for name in names:
-            self.node.create_subscription(String, f'/{name}/state',
-                                          functools.partial(self._on_state, name),
-                                          QoSProfile(depth=10))
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._closing = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._closing.is_set() and self.context.ok():
-            with contextlib.suppress(Exception):
-                self.executor.spin_once(timeout_sec=0.05)
-
-    def _on_state(self, name: str, msg: String) -> None:
-        self.state[name] = json.loads(msg.data)
-        self.heard[name].append(time.monotonic())
-
-    def first_heard_after(self, name: str, moment: float) -> float | None:
-        return next((t for t in self.heard[name] if t > moment), None)
-
-    def close(self) -> None:
-        self._closing.set()
-        self._thread.join(timeout=2.0)
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
 
 
 @dataclass
@@ -120,28 +69,12 @@ class Strike:
     error: str = ''
 
 
-def _config(workdir: Path, names: list[str], config: str) -> Path:
-    """The integrator once per name, each with its own node name and state topic."""
-    path = prepare(workdir, 'rory', interval=2.0, pace='fast')
-    doc: dict[str, Any] = yaml.safe_load(path.read_text())
-    (node,) = doc['nodes']
-    doc['nodes'] = [
-        {**node, 'name': name,
-         'command': [*node['command'], '--ros-args', '-r', f'__node:={name}',
-                     '-r', f'/integrator/state:=/{name}/state']}
-        for name in names
-    ]
-    if config == 'one standby':
-        doc['standbys'] = 1
-    path.write_text(yaml.safe_dump(doc, sort_keys=False))
-    return path
-
-
 def strike(nodes: int, config: str, domain_id: int, workdir: Path) -> Strike:
     """Run N integrators, kill them together, wait until all are exact again."""
     names = [f'n{i}' for i in range(nodes)]
     result = Strike(nodes, config)
-    path = _config(workdir, names, config)
+    path = integrators_config(workdir, names,
+                              standbys=1 if config == 'one standby' else None)
     env = scenario_env(domain_id)
     with joining(domain_id):
         reader = StateReader(domain_id, names)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -355,6 +356,67 @@ class _Observer:
     def close(self) -> None:
         # Executor and node before the context: an executor collected after its context is
         # gone prints "Exception ignored in Executor.__del__" at exit.
+        self._closing.set()
+        self._thread.join(timeout=2.0)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+def integrators_config(workdir: Path, names: list[str], *, standbys: int | None = None) -> Path:
+    """The integrator once per name under one supervisor (method rory, checkpoints every 2 s,
+    fast replay), each with its own node name and state topic (``/NAME/state``), all reading
+    /numbers; ``standbys``: the pool's size (None: the default). The config's path."""
+    path = prepare(workdir, 'rory', interval=2.0, pace='fast')
+    doc: dict[str, Any] = yaml.safe_load(path.read_text())
+    (node,) = doc['nodes']
+    doc['nodes'] = [
+        {**node, 'name': name,
+         'command': [*node['command'], '--ros-args', '-r', f'__node:={name}',
+                     '-r', f'/integrator/state:=/{name}/state']}
+        for name in names
+    ]
+    if standbys is not None:
+        doc['standbys'] = standbys
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+class StateReader:
+    """One participant reading the state topics of :func:`integrators_config`'s nodes
+    (``/NAME/state``); when each was last heard, and what."""
+
+    def __init__(self, domain_id: int, names: list[str],
+                 node_name: str = 'struck_together_reader') -> None:
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.node = Node(node_name, context=self.context)
+        self.state: dict[str, Any] = {name: {} for name in names}
+        self.heard: dict[str, list[float]] = {name: [] for name in names}
+        for name in names:
+            self.node.create_subscription(String, f'/{name}/state',
+                                          functools.partial(self._on_state, name),
+                                          QoSProfile(depth=10))
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._closing = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._closing.is_set() and self.context.ok():
+            with contextlib.suppress(Exception):
+                self.executor.spin_once(timeout_sec=0.05)
+
+    def _on_state(self, name: str, msg: String) -> None:
+        self.state[name] = json.loads(msg.data)
+        self.heard[name].append(time.monotonic())
+
+    def first_heard_after(self, name: str, moment: float) -> float | None:
+        return next((t for t in self.heard[name] if t > moment), None)
+
+    def close(self) -> None:
         self._closing.set()
         self._thread.join(timeout=2.0)
         self.executor.shutdown(timeout_sec=1.0)

@@ -7,6 +7,11 @@ are struck: one alone (the other keeps running, its process untouched) or severa
 moment (all recover; the stop is held from the first one's S1 until the last one's S4).
 
     python -m rory_eval.harness.stack --world real_room --strike 8:amcl --strike 16:amcl,navigator
+
+A strike is ``T:NODE[,NODE...]`` or ``T:all`` (:meth:`Strike.parse`): every node named is
+SIGKILLed in one loop, microseconds apart, T sim seconds after the clock starts; ``all`` names
+every node of the stack (here both; the six-target storm, ``rory_eval/faults/stack_storm.py``,
+strikes its six with it).
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +39,10 @@ GOAL_XY = 0.25  # m, as the evaluation's judge (rory_eval/evaluation/judge.py)
 CLOCK_TIMEOUT = 90.0
 
 
+ALL = 'all'
+"""A strike's node list that names every node of the stack."""
+
+
 @dataclass(frozen=True)
 class Strike:
     """SIGKILL these nodes ``at`` sim seconds after the clock starts, all at once."""
@@ -42,15 +51,30 @@ class Strike:
     nodes: tuple[str, ...]
 
     @classmethod
-    def parse(cls, text: str) -> Strike:
-        """``8:amcl`` or ``16:amcl,navigator``."""
-        at, _, names = text.partition(':')
-        nodes = tuple(n for n in names.split(',') if n)
-        unknown = [n for n in nodes if n not in NODES]
-        if not nodes or unknown:
-            msg = f'--strike {text!r}: name nodes among {", ".join(NODES)}'
+    def parse(cls, text: str, among: Sequence[str] = NODES) -> Strike:
+        """``T:NODE[,NODE...]`` or ``T:all``: ``8:amcl``, ``16:amcl,navigator``, ``12:all``.
+
+        T is sim seconds (>= 0); each node is one of ``among``, the stack's nodes, at most
+        once; ``all`` is every one of them, in their order. Raises ValueError naming what is
+        wrong.
+        """
+        at, colon, names = text.partition(':')
+        try:
+            seconds = float(at)
+        except ValueError:
+            seconds = math.nan
+        if not colon or not math.isfinite(seconds) or seconds < 0:
+            msg = f'strike {text!r}: T:NODE[,NODE...] or T:all, T sim seconds >= 0'
             raise ValueError(msg)
-        return cls(float(at), nodes)
+        nodes = tuple(n.strip() for n in names.split(',') if n.strip())
+        if nodes == (ALL,):
+            nodes = tuple(among)
+        unknown = [n for n in nodes if n not in among]
+        if not nodes or unknown or len(set(nodes)) != len(nodes):
+            msg = (f'strike {text!r}: name nodes among {", ".join(among)} (each once), '
+                   f'or {ALL}')
+            raise ValueError(msg)
+        return cls(seconds, nodes)
 
 
 @dataclass
@@ -109,16 +133,42 @@ def stack_config(world: str, out: Path, methods: dict[str, str]) -> Path:
 
 
 class Striker(threading.Thread):
-    """Kills the named nodes at their sim times (the clock runs at wall pace)."""
+    """Kills the named nodes at their sim times (the clock runs at wall pace).
+
+    ``ready``, when given, is asked at each strike's time and then every 20 ms until it
+    returns None (the stack has settled); until then it returns what is not ready yet, and a
+    strike still waiting ``ready_timeout`` s after its time is not made (an error says why).
+    ``struck_at`` holds, per strike made, its seconds after the clock started.
+    """
 
     def __init__(self, sim_log: Path, world: str, store: Path,
-                 strikes: Sequence[Strike]) -> None:
+                 strikes: Sequence[Strike], *,
+                 ready: Callable[[], str | None] | None = None,
+                 ready_timeout: float = 30.0) -> None:
         super().__init__(daemon=True, name='striker')
         self.sim_log, self.world, self.store = sim_log, world, store
         self.strikes = sorted(strikes, key=lambda s: s.at)
+        self.ready, self.ready_timeout = ready, ready_timeout
         self.done: list[tuple[float, str, int]] = []
+        self.struck_at: list[float] = []
         self.errors: list[str] = []
         self._finish = threading.Event()
+
+    def _settled(self, strike: Strike) -> bool:
+        """Wait for ``ready``; False (an error kept) when the run ended or it never was."""
+        if self.ready is None:
+            return True
+        deadline = time.monotonic() + self.ready_timeout
+        while (missing := self.ready()) is not None:
+            if time.monotonic() > deadline:
+                self.errors.append(f'not settled {self.ready_timeout:g} s after the strike at '
+                                   f'{strike.at} s: {missing}')
+                return False
+            if self._finish.wait(0.02):
+                self.errors.append(f'the run ended before the strike at {strike.at} s '
+                                   f'({missing})')
+                return False
+        return True
 
     def run(self) -> None:
         if not wait_for_clock(self.sim_log, self.world, self._finish, CLOCK_TIMEOUT):
@@ -129,6 +179,9 @@ class Striker(threading.Thread):
             if self._finish.wait(max(0.0, start + strike.at - time.monotonic())):
                 self.errors.append(f'the run ended before the strike at {strike.at} s')
                 return
+            if not self._settled(strike):
+                return
+            self.struck_at.append(time.monotonic() - start)
             spawns = store_events(self.store)
             pids = {}
             for node in strike.nodes:
@@ -231,7 +284,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--world', default='real_room')
     parser.add_argument('--strike', action='append', type=Strike.parse, default=[],
-                        metavar='T:NODE[,NODE]', help='SIGKILL nodes T sim seconds in')
+                        metavar='T:NODE[,NODE...]|T:all',
+                        help='SIGKILL nodes T sim seconds in, all in one loop')
     parser.add_argument('--method', action='append', default=[], metavar='NODE=METHOD')
     parser.add_argument('--duration', type=float)
     parser.add_argument('--domain', type=int, default=98)

@@ -21,12 +21,23 @@ case; a navigating or localizing robot must *reach the goal*. In numbers:
   reference must reach the goal too, or the cell is not judged.
 
 A run whose supervisor gave up is incorrect, whatever it left.
+
+Run folders in the runner's layout (``record.json``, ``final_map.npz``, ``final_model.npy``)
+are judged from the command line too, for what cannot import this module (``make faults``'
+six-target storm, rory_eval/faults/stack_storm.py, sits in a lower layer): one JSON line per
+pair, ``{"correct": ..., "measures": ..., "reason": ...}``::
+
+    python -m rory_eval.evaluation.judge CRASH_DIR REFERENCE_DIR [CRASH_DIR REFERENCE_DIR ...]
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import math
-from dataclasses import dataclass, field
+import sys
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -186,3 +197,31 @@ def criteria() -> str:
         '- a run whose supervisor gave up is wrong; a run whose no-crash reference failed '
         'is not judged.',
     ])
+
+
+def judge_folders(crash_dir: Path, reference_dir: Path) -> Verdict:
+    """The crash run recorded in ``crash_dir`` against the reference in ``reference_dir``
+    (each a runner's folder), judged by its target's kind as the evaluation judges it."""
+    crash, reference = RunRecord.load(crash_dir), RunRecord.load(reference_dir)
+    return judge(crash.spec.spec.kind, crash, crash_dir, reference, reference_dir)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Judge each pair of folders; print one JSON verdict per pair; exit 2 on bad arguments."""
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.evaluation.judge',
+                                     description='Judge crash runs against their references '
+                                                 'as rory eval does: one JSON line per pair.')
+    parser.add_argument('folders', type=Path, nargs='+', metavar='CRASH_DIR REFERENCE_DIR')
+    args = parser.parse_args(argv)
+    if len(args.folders) % 2:
+        parser.error('give folders in pairs: CRASH_DIR REFERENCE_DIR')
+    missing = [str(f) for f in args.folders if not (f / 'record.json').is_file()]
+    if missing:
+        parser.error(f'no record.json in {", ".join(missing)}')
+    for crash_dir, reference_dir in zip(args.folders[::2], args.folders[1::2], strict=True):
+        print(json.dumps(asdict(judge_folders(crash_dir, reference_dir))), flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -2,11 +2,12 @@
 small nodes supervised and no traffic (issue 36).
 
     python -m rory_eval.bench.rest_bench [--runs 5] [--seconds 30] [--nodes 6] [--domain 7]
-                                         [--out DIR]
+                                         [--standbys N] [--out DIR]
 
 What a robot pays for RORY while nothing happens is its fixed processes: the supervisor (an
 interpreter with rclpy, its participant and the ring's readers), the zygote (the fork server)
-and the standby (a fork that has made its participant and waits). Each run starts one
+and the standbys (forks that have made their participants and wait; the pool's default size
+for six nodes is 3, ``--standbys`` sets it). Each run starts one
 ``rory supervise`` config with ``--nodes`` copies of the example integrator (examples/integrator,
 instrumented as rory_eval/harness/scenario.py ``prepare`` does), each with its own node name
 and remapped topics (``/numbers_<i>``, ``/integrator_<i>/state``) so that the supervisor keeps
@@ -59,6 +60,7 @@ from rory_eval.harness.scenario import (
     scenario_env,
 )
 from rory_eval.harness.simrun import exit_on_sigterm
+from rory_runtime.supervisor.config import DEFAULT_MAX_STANDBYS
 
 FIXED = ('supervisor', 'zygote', 'standby')
 """RORY's processes whatever the nodes: the figure of issue 36."""
@@ -74,9 +76,10 @@ def node_name(i: int) -> str:
     return f'integrator_{i}'
 
 
-def write_config(workdir: Path, nodes: int) -> Path:
+def write_config(workdir: Path, nodes: int, standbys: int | None = None) -> Path:
     """The integrator instrumented into ``workdir`` and a config with ``nodes`` copies of it,
-    each with its own node name and topics; the config's path."""
+    each with its own node name and topics, and ``standbys`` (None: the default pool); the
+    config's path."""
     path = prepare(workdir, 'rory', interval=None, pace=None)
     config: dict[str, Any] = yaml.safe_load(path.read_text())
     (node,) = config['nodes']
@@ -87,8 +90,16 @@ def write_config(workdir: Path, nodes: int) -> Path:
                      '-r', f'/integrator/state:=/{node_name(i)}/state']}
         for i in range(1, nodes + 1)
     ]
+    if standbys is not None:
+        config['standbys'] = standbys
     path.write_text(yaml.safe_dump(config, sort_keys=False))
     return path
+
+
+def pool_size(nodes: int, standbys: int | None) -> int:
+    """The standbys a supervisor of ``nodes`` integrators keeps (config.py,
+    ``SupervisorConfig.standby_pool_size``)."""
+    return standbys if standbys is not None else max(1, min(DEFAULT_MAX_STANDBYS, nodes))
 
 
 def standby_ready(log: str, pid: int) -> bool:
@@ -196,16 +207,19 @@ def other_users(libraries: Sequence[str], ours: set[int], *,
     return users
 
 
-def run_once(workdir: Path, domain: int, nodes: int, seconds: float) -> dict[str, Any]:
+def run_once(workdir: Path, domain: int, nodes: int, seconds: float,
+             standbys: int | None = None) -> dict[str, Any]:
     """One run: start the supervisor with ``nodes`` integrators, wait until all run and the
-    standby is ready, measure its tree over ``seconds``; usage per role (TreeUsage.to_json)."""
+    standby pool is ready, measure its tree over ``seconds``; usage per role
+    (TreeUsage.to_json)."""
     workdir = workdir.resolve()
-    config = write_config(workdir, nodes)
+    config = write_config(workdir, nodes, standbys)
+    pool = pool_size(nodes, standbys)
     events = EventsFile(workdir / 'store-rory' / 'events.jsonl')
     names = [node_name(i) for i in range(1, nodes + 1)]
     trackers = {name: EventTracker() for name in names}
     standby: dict[str, int] = {}  # node -> the standby pid it was given
-    standbys: list[int] = []  # every standby pid, in the order the events gave them
+    standby_pids: list[int] = []  # every standby pid, in the order the events gave them
     log = workdir / 'supervisor.log'
 
     def poll() -> list[dict[str, Any]]:
@@ -215,15 +229,15 @@ def run_once(workdir: Path, domain: int, nodes: int, seconds: float) -> dict[str
                 trackers[ev['node']].feed([ev])
                 if ev['kind'] == 'standby':
                     standby[ev['node']] = int(ev['pid'])
-                    standbys.append(int(ev['pid']))
+                    standby_pids.append(int(ev['pid']))
         return new
 
     with child_process([sys.executable, '-m', 'rory_runtime.cli', 'supervise', str(config)],
                        scenario_env(domain), workdir, log) as sup:
         deadline = time.monotonic() + READY_TIMEOUT
         while not (all(t.state == 'RUNNING' for t in trackers.values())
-                   and len(standby) == nodes
-                   and all(standby_ready(log.read_text(), pid) for pid in set(standby.values()))):
+                   and len(standby) == nodes and len(set(standby_pids)) >= pool
+                   and all(standby_ready(log.read_text(), pid) for pid in set(standby_pids))):
             poll()
             if sup.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError('the nodes did not all run with a standby ready:\n'
@@ -231,7 +245,7 @@ def run_once(workdir: Path, domain: int, nodes: int, seconds: float) -> dict[str
             time.sleep(0.05)
         time.sleep(SETTLE)
         poll()
-        watched = {'supervisor': sup.pid, 'standby': standbys[-1]}
+        watched = {'supervisor': sup.pid, 'standby': standby_pids[-1]}
         sampler = TreeSampler(sup.pid)
         sampler.start()
         opened = time.monotonic()
@@ -255,13 +269,13 @@ def run_once(workdir: Path, domain: int, nodes: int, seconds: float) -> dict[str
         kinds[ev['kind']] = kinds.get(ev['kind'], 0) + 1
     roles = usage.to_json()
     counts = {role: roles.get(role, {}).get('processes', 0) for role in ROLES}
-    if counts != {'supervisor': 1, 'zygote': 1, 'standby': 1, 'node': nodes}:
+    if counts != {'supervisor': 1, 'zygote': 1, 'standby': pool, 'node': nodes}:
         raise RuntimeError(f'not the processes of a supervisor at rest: {counts}')
     if kinds.get('spawn') or kinds.get('exit'):
         raise RuntimeError(f'a node started or ended in the window: {kinds}')
     return {'wall_seconds': round(usage.wall_seconds, 2),
             'steady_wall_seconds': round(usage.steady_wall_seconds, 2),
-            'standby_pids': sorted(set(standby.values())),
+            'standby_pids': sorted(set(standby_pids)), 'pool': pool,
             'main_threads': mains, 'events_in_window': kinds, 'other_users': others,
             'roles': roles, 'threads_percent': threads, 'threads_wakeups': wakeups,
             'fixed': fixed_of(roles)}
@@ -370,14 +384,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--seconds', type=float, default=30.0, help='measured window (s)')
     parser.add_argument('--nodes', type=int, default=6, help='integrators supervised')
     parser.add_argument('--domain', type=int, default=7)
+    parser.add_argument('--standbys', type=int, default=None,
+                        help="the supervisor's standby pool (default: the config's default)")
     parser.add_argument('--out', help='keep the runs and rest.json here')
     args = parser.parse_args(argv)
-    if args.runs < 1 or args.seconds <= 0 or args.nodes < 1:
-        parser.error('--runs and --nodes must be at least 1, --seconds positive')
+    if args.runs < 1 or args.seconds <= 0 or args.nodes < 1 or (
+            args.standbys is not None and args.standbys < 1):
+        parser.error('--runs, --nodes and --standbys must be at least 1, --seconds positive')
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='rory-rest-'))
     runs: list[dict[str, Any]] = []
     for i in range(args.runs):
-        result = run_once(root / f'run{i}', args.domain, args.nodes, args.seconds)
+        result = run_once(root / f'run{i}', args.domain, args.nodes, args.seconds,
+                          args.standbys)
         runs.append(result)
         roles = result['roles']
         print(f'[{i + 1}/{args.runs}] fixed {result["fixed"]["cpu_percent"]:.2f} % of a core, '

@@ -14,8 +14,9 @@ for each setting side by side in one run:
   and is SIGKILLed once heard, ``--restarts`` times: the time from its publish to the
   listener's receipt (a cold restart: a new participant; a warm standby's is known already).
 
-Settings: Fast DDS's defaults (lease 20 s, announced every 3 s), RORY's profile, and RORY's
-profile with other leases and announcement periods (``--leases``): same transport, same initial
+Settings: Fast DDS's defaults (lease 20 s, announced every 3 s), RORY's profile, its node
+variant (the one node processes run: builtin writers asynchronous), and RORY's profile with
+other leases and announcement periods (``--leases``): same transport, same initial
 announcements. All under
 ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` as RORY runs it (UDPv4 on 127.0.0.1, 64 initial
 peer ports). Prints a Markdown table and writes ``<out>/dds_fleet.json``.
@@ -41,7 +42,7 @@ from typing import Any
 from rory_eval.bench.discovery import measure
 from rory_eval.harness.process_usage import read_process
 from rory_eval.harness.simrun import exit_on_sigterm
-from rory_runtime.dds import fast_rediscovery_env
+from rory_runtime.dds import fast_rediscovery_env, node_profile_env
 
 IDLE = r'''
 import os, rclpy
@@ -58,7 +59,10 @@ def profiles(folder: Path, leases: Sequence[tuple[float, float]]) -> dict[str, d
     with each (lease, announcement period) of ``leases``."""
     rory = fast_rediscovery_env({'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'})
     template = Path(rory['FASTRTPS_DEFAULT_PROFILES_FILE']).read_text()
-    settings: dict[str, dict[str, str]] = {'RORY\'s profile': rory}
+    # What node processes and standbys run (rory_runtime/dds/fast_rediscovery*_node.xml).
+    settings: dict[str, dict[str, str]] = {'RORY\'s profile': rory,
+                                           'RORY\'s node profile': {**rory,
+                                                                    **node_profile_env(rory)}}
     for lease, every in leases:
         whole, part = int(lease), round((lease % 1) * 1e9)
         text = re.sub(r'<leaseDuration>.*?</leaseDuration>',

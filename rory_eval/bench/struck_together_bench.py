@@ -17,7 +17,8 @@ Per node struck, two times from the kill:
 * *recovered*: the supervisor's own measure, crash detected -> released (``recovered``
   event's ``total_ms``);
 * *heard*: when a reader of the node's state topic in this process first heard the new
-  process: what the node's consumers see. A cold process can be released long before other
+  process (the first state message after its spawn event was read): what the node's consumers
+  see. A cold process can be released long before other
   participants have discovered it (docs/performance.md, "Where a slow cold start waits").
 
 The table gives, per N and configuration, the median and the worst over every node struck
@@ -80,6 +81,7 @@ def strike(nodes: int, config: str, domain_id: int, workdir: Path) -> Strike:
         reader = StateReader(domain_id, names)
     events = EventsFile(workdir / 'store-rory' / 'events.jsonl')
     pids: dict[str, int] = {}
+    respawned: dict[str, float] = {}  # when this process saw each node's next process spawned
     pool = min(3, nodes) if config == 'pool' else 1
     sup_log = workdir / 'supervisor.log'
 
@@ -89,6 +91,8 @@ def strike(nodes: int, config: str, domain_id: int, workdir: Path) -> Strike:
             for ev in events.poll():
                 if ev['kind'] == 'spawn':
                     pids[ev['node']] = ev['pid']
+                    if ev['incarnation'] > 1:
+                        respawned.setdefault(ev['node'], time.monotonic())
             if sup.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f'{what}:\n{sup_log.read_text()[-3000:]}')
             time.sleep(0.005)
@@ -123,7 +127,9 @@ def strike(nodes: int, config: str, domain_id: int, workdir: Path) -> Strike:
             if ev['kind'] == 'spawn' and ev['incarnation'] == 2:
                 result.warm[ev['node']] = bool(ev['warm'])
         for name in names:
-            heard = reader.first_heard_after(name, struck_at)
+            # The first state from the new process: heard after it was spawned (a message the
+            # killed one sent can still arrive just after the kill).
+            heard = reader.first_heard_after(name, respawned.get(name, struck_at))
             if heard is not None:
                 result.heard_ms[name] = (heard - struck_at) * 1000
         result.exact = all(

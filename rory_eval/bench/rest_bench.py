@@ -213,12 +213,13 @@ def run_once(workdir: Path, domain: int, nodes: int, seconds: float,
     standby pool is ready, measure its tree over ``seconds``; usage per role
     (TreeUsage.to_json)."""
     workdir = workdir.resolve()
+    # A run of an earlier invocation into the same --out: its events would be read as this one's.
+    shutil.rmtree(workdir / 'store-rory', ignore_errors=True)
     config = write_config(workdir, nodes, standbys)
     pool = pool_size(nodes, standbys)
     events = EventsFile(workdir / 'store-rory' / 'events.jsonl')
     names = [node_name(i) for i in range(1, nodes + 1)]
     trackers = {name: EventTracker() for name in names}
-    standby: dict[str, int] = {}  # node -> the standby pid it was given
     standby_pids: list[int] = []  # every standby pid, in the order the events gave them
     log = workdir / 'supervisor.log'
 
@@ -228,7 +229,6 @@ def run_once(workdir: Path, domain: int, nodes: int, seconds: float,
             if ev.get('node') in trackers:
                 trackers[ev['node']].feed([ev])
                 if ev['kind'] == 'standby':
-                    standby[ev['node']] = int(ev['pid'])
                     standby_pids.append(int(ev['pid']))
         return new
 
@@ -236,7 +236,7 @@ def run_once(workdir: Path, domain: int, nodes: int, seconds: float,
                        scenario_env(domain), workdir, log) as sup:
         deadline = time.monotonic() + READY_TIMEOUT
         while not (all(t.state == 'RUNNING' for t in trackers.values())
-                   and len(standby) == nodes and len(set(standby_pids)) >= pool
+                   and len(set(standby_pids)) >= pool
                    and all(standby_ready(log.read_text(), pid) for pid in set(standby_pids))):
             poll()
             if sup.poll() is not None or time.monotonic() > deadline:

@@ -40,7 +40,6 @@ from pathlib import Path
 from typing import Any
 
 from rory_eval.bench.discovery import measure
-from rory_eval.harness.process_usage import read_process
 from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.dds import fast_rediscovery_env, node_profile_env
 
@@ -50,8 +49,6 @@ rclpy.init()
 n = rclpy.create_node('fleet_%d' % os.getpid())
 rclpy.spin(n)
 '''
-
-_TICK = float(os.sysconf('SC_CLK_TCK'))
 
 
 def profiles(folder: Path, leases: Sequence[tuple[float, float]]) -> dict[str, dict[str, str]]:
@@ -79,6 +76,23 @@ def profiles(folder: Path, leases: Sequence[tuple[float, float]]) -> dict[str, d
     return settings
 
 
+def cpu_seconds(pid: int) -> float | None:
+    """CPU time of every thread of ``pid`` so far, from each thread's ``schedstat`` (ns on the
+    CPU; ``stat``'s 10 ms ticks are too coarse for an idle participant: one tick in 20 s is
+    0.05 % of a core); None once the process is gone."""
+    total = 0
+    try:
+        tasks = os.listdir(f'/proc/{pid}/task')
+    except OSError:
+        return None
+    for task in tasks:
+        try:
+            total += int(Path(f'/proc/{pid}/task/{task}/schedstat').read_text().split()[0])
+        except (OSError, ValueError, IndexError):
+            continue  # a thread that ended meanwhile
+    return total / 1e9
+
+
 def at_rest(extra: dict[str, str], participants: int, settle: float, seconds: float,
             domain: int) -> list[float]:
     """CPU of each idle participant, in percent of a core."""
@@ -89,16 +103,16 @@ def at_rest(extra: dict[str, str], participants: int, settle: float, seconds: fl
              for _ in range(participants)]
     try:
         time.sleep(settle)
-        before = {p.pid: read_process(p.pid) for p in procs}
+        before = {p.pid: cpu_seconds(p.pid) for p in procs}
         started = time.monotonic()
         time.sleep(seconds)
-        after = {p.pid: read_process(p.pid) for p in procs}
+        after = {p.pid: cpu_seconds(p.pid) for p in procs}
         wall = time.monotonic() - started
         usage = []
         for pid, then in before.items():
             now = after.get(pid)
             if then is not None and now is not None:
-                usage.append(100.0 * (now.own_ticks - then.own_ticks) / _TICK / wall)
+                usage.append(100.0 * (now - then) / wall)
         return usage
     finally:
         for proc in procs:

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from rory_eval.faults.storm_bound_campaign import (
     Campaign,
     Reading,
@@ -17,6 +19,7 @@ from rory_eval.faults.storm_bound_campaign import (
     judge,
     kinds_change,
     least,
+    memory_by_mapping,
     read_once,
     still_there,
     table,
@@ -167,3 +170,11 @@ def test_a_zombie_when_the_supervisor_exits_is_noted_a_live_process_fails() -> N
         "processes left 2 s after the supervisor exited: {42: 'S'}"]
     inexact = Campaign(nodes=2, pool=2, count=10, exact={'n0': True, 'n1': False})
     assert inexact.end_failures() == ['n1 did not apply 1..10 exactly once, in order']
+
+
+def test_memory_by_mapping_adds_up_to_the_process() -> None:
+    mappings = memory_by_mapping(os.getpid())
+    assert mappings['[anon]']['maps'] >= 1
+    assert any('libpython' in name or 'python' in Path(name).name for name in mappings)
+    total = sum(m['rss'] for m in mappings.values())
+    assert total == pytest.approx(read_once(os.getpid(), 0).rss_mb, rel=0.1)

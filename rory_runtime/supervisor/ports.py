@@ -15,13 +15,16 @@ supervisord tests its process logic.
 from __future__ import annotations
 
 import queue
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
+from rosbags.interfaces import Qos
+
+from ..log import LogEntry
+from ..protocol import InputSpec
 from .config import SupervisorConfig
 from .process import Launcher
-from .ring import Ring
 
 
 class EventSink(Protocol):
@@ -41,6 +44,79 @@ class SafetyPort(Protocol):
 
     def release(self, node_id: str) -> None:
         """This node no longer needs it (released when no node does)."""
+        ...
+
+
+class RingSink(Protocol):
+    """Where an activated ring delivers: first its backlog, as one batch, then each message."""
+
+    def add_backlog(self, entries: list[LogEntry]) -> None:
+        """What the ring held at activation, in receive order."""
+
+    def add(self, entry: LogEntry) -> None:
+        """One message taken after the backlog (called from the ring's thread)."""
+
+
+class Capture(list[LogEntry]):
+    """A sink that keeps everything, in order (the supervisor's early capture of a stalled
+    node's inputs; tests)."""
+
+    def add_backlog(self, entries: list[LogEntry]) -> None:
+        self.extend(entries)
+
+    def add(self, entry: LogEntry) -> None:
+        self.append(entry)
+
+
+class RingTopicPort(Protocol):
+    """The ring's reader of one input of a node (``ring.RingTopic``)."""
+
+    @property
+    def spec(self) -> InputSpec:
+        """The input it reads, with the node's QoS."""
+        ...
+
+    def publisher_count(self) -> int:
+        """Publishers the reader is matched with."""
+        ...
+
+
+class RingPort(Protocol):
+    """The supervisor's own readers of one node's inputs (``ring.Ring``, made of rclpy
+    readers; a fake in the unit tests): passive until a crash activates them."""
+
+    @property
+    def topics(self) -> Mapping[str, RingTopicPort]:
+        """Its reader of each input topic."""
+        ...
+
+    @property
+    def active_topics(self) -> set[str]:
+        """Topics taken as they come."""
+        ...
+
+    def ensure(self, specs: Iterable[InputSpec]) -> None:
+        """Have a reader for each input."""
+        ...
+
+    def publisher_count(self, topic: str) -> int:
+        """Publishers the reader of ``topic`` is matched with."""
+        ...
+
+    def publisher_counts(self) -> dict[str, int]:
+        """Matched publishers per topic."""
+        ...
+
+    def offered_qos(self, topic: str) -> list[Qos]:
+        """The QoS the topic's publishers offer."""
+        ...
+
+    def activate(self, sink: RingSink, before: list[LogEntry] | None = None) -> None:
+        """Hand ``sink`` what the readers hold, then each new message."""
+        ...
+
+    def deactivate(self, topic: str | None = None) -> None:
+        """Make one topic (or all) passive again."""
         ...
 
 
@@ -117,7 +193,7 @@ class SupervisorPorts(Protocol):
         """A node's last heartbeat on the clock's scale, in ns; None before its first."""
         ...
 
-    def make_ring(self, node_id: str) -> Ring:
+    def make_ring(self, node_id: str) -> RingPort:
         """A ring for one node's inputs."""
         ...
 

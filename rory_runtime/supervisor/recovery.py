@@ -60,8 +60,7 @@ from ..protocol import (
 from ..store import CheckpointStore
 from .lineage import Admission, InputGap, SequenceWatch, Verdict
 from .poison import Quarantined, died_on_json
-from .ports import SafetyPort
-from .ring import Ring
+from .ports import RingPort, SafetyPort
 from .states import LOG_PREFIX
 
 _logger = logging.getLogger('rory.supervisor')
@@ -405,7 +404,7 @@ class Recovery:
     crashed: float  # the clock's seconds at the crash
     crashed_ns: int  # time.time_ns() at the crash, the clock of message receive times
     safety: SafetyPort
-    ring: Ring | None
+    ring: RingPort | None
     segments: SegmentStore
     checkpoints: CheckpointStore
     clock: Callable[[], float] = time.monotonic  # the supervisor's (ports.py)
@@ -464,7 +463,7 @@ class Recovery:
         if self.timings.s2_done is None:  # a later crash of the same recovery is not S2 time
             self.timings.s2_done = self.clock()
 
-    def join_ring(self, ring: Ring) -> None:
+    def join_ring(self, ring: RingPort) -> None:
         """The ring exists now (the node named its inputs in its HELLO): S2 with it."""
         self.ring = ring
         self.s2_isolate()

@@ -34,7 +34,7 @@ import logging
 import threading
 from collections import deque
 from collections.abc import Iterable
-from typing import Any, Protocol
+from typing import Any
 
 import rclpy
 from rclpy.context import Context
@@ -52,6 +52,7 @@ from ..protocol import SEQ_MASK, InputSpec, ring_depth
 from ..qos import offered_qos
 from ..threads import name_this_thread
 from .hidden import quiet_node
+from .ports import RingSink
 from .rcl_take import SerializedTaker, Taken
 
 _logger = logging.getLogger('rory.supervisor')
@@ -59,27 +60,6 @@ _logger = logging.getLogger('rory.supervisor')
 _WAIT_NS = 1_000_000_000
 """The ring thread is woken by messages and by its guard condition (activation, deactivation,
 shutdown); the timeout only re-checks the running flag."""
-
-
-class RingSink(Protocol):
-    """Where an activated ring delivers: first its backlog, as one batch, then each message."""
-
-    def add_backlog(self, entries: list[LogEntry]) -> None:
-        """What the ring held at activation, in receive order."""
-
-    def add(self, entry: LogEntry) -> None:
-        """One message taken after the backlog (called from the ring's thread)."""
-
-
-class Capture(list[LogEntry]):
-    """A sink that keeps everything, in order (the supervisor's early capture of a stalled
-    node's inputs; tests)."""
-
-    def add_backlog(self, entries: list[LogEntry]) -> None:
-        self.extend(entries)
-
-    def add(self, entry: LogEntry) -> None:
-        self.append(entry)
 
 
 class RingContext:

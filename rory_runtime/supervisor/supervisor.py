@@ -66,10 +66,10 @@ from .output import OutputPrefixer
 from .parameters import NODE_NAME as SUPERVISOR_NODE
 from .parameters import apply_parameters, own_ros_args
 from .poison import PoisonGuard, Quarantined
-from .ports import SupervisorPorts
+from .ports import Capture, RingPort, SupervisorPorts
 from .process import Child, Launcher, RestartPolicy, describe_exit
 from .recovery import Recovery
-from .ring import Capture, Ring, RingContext
+from .ring import Ring, RingContext
 from .run_marker import PreviousRun, RunMarker, make_room_for_previous
 from .safety import SafeState
 from .standby import ForkLauncher
@@ -187,7 +187,7 @@ class ManagedNode:
         # What belongs to the current process; a new one at each spawn.
         self.current = Incarnation(0, 0)
         self.inputs: list[InputSpec] = []
-        self.ring: Ring | None = None
+        self.ring: RingPort | None = None
         self.recovery: Recovery | None = None
         self.running_since: float | None = None
         self.restart_at: float | None = None

@@ -14,7 +14,7 @@ import dataclasses
 import queue
 import signal
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +32,7 @@ from rory_runtime.protocol import (
     SyncedStatus,
 )
 from rory_runtime.supervisor.config import SupervisorConfig, load_config
-from rory_runtime.supervisor.ring import Ring
+from rory_runtime.supervisor.ports import RingPort
 from rory_runtime.supervisor.states import NodeState
 from rory_runtime.supervisor.supervisor import ChildExited, GateCall, ManagedNode, Released
 
@@ -202,8 +202,8 @@ class FakeRing:
     def activations(self) -> int:
         return len(self.sinks)
 
-    def ensure(self, inputs: list[InputSpec]) -> None:
-        self.topics.update({spec.topic: FakeRingTopic(spec) for spec in inputs})
+    def ensure(self, specs: Iterable[InputSpec]) -> None:
+        self.topics.update({spec.topic: FakeRingTopic(spec) for spec in specs})
 
     def publisher_counts(self) -> dict[str, int]:
         return dict.fromkeys(self.topics, 1)
@@ -247,10 +247,10 @@ class FakeSupervisor:
     def read_beat(self, slot: Path) -> int | None:
         return self.beats.get(slot)
 
-    def make_ring(self, node_id: str) -> Ring:
+    def make_ring(self, node_id: str) -> RingPort:
         ring = FakeRing()
         self.rings.append(ring)
-        return ring  # type: ignore[return-value]
+        return ring
 
     def post_status(self, text: str) -> None:
         pass
@@ -280,7 +280,7 @@ class Harness:
         path = tmp_path / 'supervise.yaml'
         path.write_text(yaml.safe_dump({'nodes': [entry], 'store': 'store'}))
         self.sup = FakeSupervisor(load_config(path))
-        self.node = ManagedNode(self.sup, self.sup.config.nodes[0])  # type: ignore[arg-type]
+        self.node = ManagedNode(self.sup, self.sup.config.nodes[0])
 
     @property
     def clock(self) -> FakeClock:

@@ -18,8 +18,9 @@ from std_msgs.msg import Int64
 
 from rory_runtime.log import LogEntry, SegmentStore
 from rory_runtime.protocol import InputSpec, ring_depth
+from rory_runtime.supervisor.ports import Capture
 from rory_runtime.supervisor.recovery import RecoveryLog
-from rory_runtime.supervisor.ring import Capture, Ring, RingContext
+from rory_runtime.supervisor.ring import Ring, RingContext
 
 pytestmark = pytest.mark.ros
 

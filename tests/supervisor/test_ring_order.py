@@ -6,7 +6,8 @@ import threading
 from typing import Any, cast
 
 from rory_runtime.log import LogEntry
-from rory_runtime.supervisor.ring import Capture, Ring
+from rory_runtime.supervisor.ports import Capture
+from rory_runtime.supervisor.ring import Ring
 
 
 def entry(topic: str, n: int) -> LogEntry:

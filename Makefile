@@ -84,10 +84,14 @@ discovery: $(STAMP)
 # integrator idle for a minute between its numbers for three minutes with hang_timeout 1 s,
 # which must never be taken for hung (~3 min; docs/faults.md, "An idle node is never taken
 # for hung").
+# Storms in a row: three integrators SIGKILLed together 20 times under one supervisor, whose
+# memory, descriptors, threads and process tree must stay bounded (~5 min; docs/faults.md,
+# "Storms in a row").
 faults: $(STAMP)
 	$(PY) -m rory_eval.faults.fault_campaign --runs 8
 	$(PY) -m rory_eval.faults.storm_campaign --runs 40
 	$(PY) -m rory_eval.faults.common_mode_campaign --runs 5
+	$(PY) -m rory_eval.faults.storm_bound_campaign --storms 20 --nodes 3
 	$(PY) -m rory_eval.faults.corpus_campaign --kills 3
 	$(PY) -m rory_eval.faults.target_faults
 	$(PY) -m rory_eval.faults.load_campaign --load 2

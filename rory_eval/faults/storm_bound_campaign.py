@@ -8,7 +8,9 @@ topic, all reading /numbers, method rory, the default standby pool: one per node
 one publisher sends 1, 2, ... at 50 Hz for the whole campaign. Then come ``--storms`` storms in
 a row, each:
 
-1. SIGKILL every node process in one loop (microseconds apart);
+1. once every node has run :data:`STABLE_RUN` s (the supervisor's ``stable_after`` and a
+   half second: storms closer together are a crash loop to it, which it gives up after five),
+   SIGKILL every node process in one loop (microseconds apart);
 2. wait until every node is back (a ``recovered`` event, RUNNING again) and the pool is full
    again (each standby the pool holds has logged `` ready in ``), and at least
    :data:`SETTLE` s after the kill, so that the killed processes' DDS participants have
@@ -25,6 +27,8 @@ by at most :data:`MEMORY_TOLERANCE_MB` MB; and at every reading the tree is the 
 pool, the zygote and nothing else, no zombie. Then the publisher finishes, each node must have
 applied every number exactly once, in order (its state topic's history), and the supervisor
 is stopped as a user would (SIGINT): every process of its tree must be gone when it has exited.
+With ``--out`` the run is kept, with the evidence behind each reading in ``readings.jsonl``
+(descriptors by kind, the tree, the supervisor's memory by mapping and its unnamed mappings).
 """
 
 from __future__ import annotations

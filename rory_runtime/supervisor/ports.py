@@ -120,6 +120,15 @@ class RingPort(Protocol):
         ...
 
 
+class EnvelopePort(Protocol):
+    """Where the supervisor sends a node's envelopes (``protocol.SignedPublisher`` on the
+    node's shadow topic; a recorder in the unit tests)."""
+
+    def publish(self, raw: bytes) -> None:
+        """Send one envelope (packed, unsigned: the port signs it)."""
+        ...
+
+
 class RosPort(Protocol):
     """The rclpy node calls a managed node makes on the supervisor's own node."""
 

@@ -52,7 +52,6 @@ from ..protocol import (
     RELAY_KEEPALIVE_S,
     MessageId,
     ReplayPace,
-    SignedPublisher,
     pack_alive,
     pack_msg,
     pack_release,
@@ -60,7 +59,7 @@ from ..protocol import (
 from ..store import CheckpointStore
 from .lineage import Admission, InputGap, SequenceWatch, Verdict
 from .poison import Quarantined, died_on_json
-from .ports import RingPort, SafetyPort
+from .ports import EnvelopePort, RingPort, SafetyPort
 from .states import LOG_PREFIX
 
 _logger = logging.getLogger('rory.supervisor')
@@ -282,7 +281,7 @@ class ReplayStreamer(threading.Thread):
 
     def __init__(
         self,
-        publisher: SignedPublisher,
+        publisher: EnvelopePort,
         incarnation: int,
         backlog: Iterator[LogEntry],
         rlog: RecoveryLog,
@@ -495,7 +494,7 @@ class Recovery:
 
     def s3_replay(
         self,
-        publisher: SignedPublisher,
+        publisher: EnvelopePort,
         incarnation: int,
         cut: int | None,
         pace: ReplayPace,

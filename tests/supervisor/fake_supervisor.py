@@ -293,6 +293,10 @@ class Harness:
     def states(self) -> list[str]:
         return [r['new'] for r in self.sup.events_log.of('state')]
 
+    def state(self) -> NodeState:
+        """The node's state now (a call: each read is fresh to the type checker too)."""
+        return self.node.sm.state
+
     def status(self, status: Status) -> None:
         """A status of the node's current process, as the supervisor gets it: signed with the
         run's key, encoded and decoded."""

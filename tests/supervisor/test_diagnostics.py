@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 
@@ -11,12 +13,12 @@ from rory_runtime.supervisor.states import NodeState
 
 
 def _health(state: NodeState, **kw: object) -> NodeHealth:
-    fields: dict[str, object] = dict(
+    fields: dict[str, Any] = dict(
         node='mapper', state=state, method='rory', pid=42, incarnation=3, crashes=2,
         last_recovery_ms=143.25, last_recovery_age_s=12.0, last_checkpoint_age_s=0.4,
         standby='ready')
     fields.update(kw)
-    return NodeHealth(**fields)  # type: ignore[arg-type]
+    return NodeHealth(**fields)
 
 
 @pytest.mark.parametrize(('state', 'level'), [

@@ -9,6 +9,7 @@ everything above it that the ring saw.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +39,7 @@ def idents(*entries: LogEntry) -> set[MessageId]:
 
 
 def judge_all(admission: Admission, backlog: list[LogEntry],
-              later: list[LogEntry] = ()) -> list[LogEntry]:  # type: ignore[assignment]
+              later: Sequence[LogEntry] = ()) -> list[LogEntry]:
     admission.learn(backlog)
     admitted = [e for e in backlog if admission.judge(e) == Verdict.NEW]
     admitted += [e for e in later if admission.judge(e) == Verdict.NEW]

@@ -36,17 +36,17 @@ def _started(tmp_path: Path, **node: object) -> Harness:
     h.node.start()
     h.beat()
     h.up()
-    assert h.node.sm.state == S.RUNNING
+    assert h.state() == S.RUNNING
     return h
 
 
 def test_a_fresh_start_runs_once_the_process_says_released(tmp_path: Path) -> None:
     h = Harness(tmp_path)
     h.node.start()
-    assert h.node.sm.state == S.STARTING and len(h.sup.launcher.children) == 1
+    assert h.state() == S.STARTING and len(h.sup.launcher.children) == 1
     assert h.child.env[protocol.ENV_MODE] == 'fresh' and h.child.env[protocol.ENV_NODE] == 'n'
     h.hello()
-    assert h.node.sm.state == S.STARTING  # restart releases itself: RELEASED comes next
+    assert h.state() == S.STARTING  # restart releases itself: RELEASED comes next
     h.released()
     assert h.states() == ['STARTING', 'RUNNING']
     assert not h.sup.safety.log  # a fresh start holds nothing
@@ -62,7 +62,7 @@ def test_a_crash_while_running_holds_the_safe_state_until_the_new_process_is_rel
     assert len(h.sup.launcher.children) == 2 and h.child.env[protocol.ENV_MODE] == 'recover'
     assert h.child.env[protocol.ENV_INCARNATION] == '2'
     h.up()
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == [('hold', 'n'), ('release', 'n')]
+    assert h.state() == S.RUNNING and h.sup.safety.log == [('hold', 'n'), ('release', 'n')]
     (recovered,) = h.sup.events_log.of('recovered')
     assert recovered['crashes'] == 1 and recovered['incarnation'] == 2
 
@@ -70,7 +70,7 @@ def test_a_crash_while_running_holds_the_safe_state_until_the_new_process_is_rel
 def test_a_clean_exit_is_the_node_finishing_not_a_crash(tmp_path: Path) -> None:
     h = _started(tmp_path)
     h.exit(0)
-    assert h.node.sm.state == S.EXITED and len(h.sup.launcher.children) == 1
+    assert h.state() == S.EXITED and len(h.sup.launcher.children) == 1
     assert not h.sup.safety.log
 
 
@@ -80,7 +80,7 @@ def test_a_crash_during_the_first_start_is_recovered_like_any_other(tmp_path: Pa
     h.exit(1)
     assert h.states() == ['STARTING', 'CRASHED', 'RESTORING'] and h.sup.safety.holders == {'n'}
     h.up()
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.state() == S.RUNNING and h.sup.safety.log == ONCE
 
 
 @pytest.mark.parametrize('before', ['hello', 'nothing'])
@@ -95,9 +95,9 @@ def test_a_second_crash_before_the_release_is_the_same_recovery_after_a_backoff(
     assert h.states()[-3:] == ['RESTORING', 'CRASHED', 'BACKOFF']
     assert h.sup.safety.holders == {'n'}  # held throughout: one episode
     h.tick(0.4)
-    assert h.node.sm.state == S.BACKOFF and len(h.sup.launcher.children) == 2
+    assert h.state() == S.BACKOFF and len(h.sup.launcher.children) == 2
     h.tick(0.2)  # the second consecutive crash waits backoff.step (0.5 s)
-    assert h.node.sm.state == S.RESTORING and len(h.sup.launcher.children) == 3
+    assert h.state() == S.RESTORING and len(h.sup.launcher.children) == 3
     h.up()
     (recovered,) = h.sup.events_log.of('recovered')
     assert recovered['crashes'] == 2 and h.sup.safety.log == [('hold', 'n'), ('release', 'n')]
@@ -110,18 +110,19 @@ def test_a_crash_loop_backs_off_doubling_then_gives_up_holding_the_safe_state(
     delays = []
     for _ in range(3):
         h.exit(1)
-        if h.node.sm.state == S.BACKOFF:
-            delays.append(h.node.restart_at - h.clock())  # type: ignore[operator]
+        if h.state() == S.BACKOFF:
+            assert h.node.restart_at is not None
+            delays.append(h.node.restart_at - h.clock())
             h.tick(10.0)
-        assert h.node.sm.state == S.RESTORING
+        assert h.state() == S.RESTORING
     assert delays == [0.5, 1.0]  # the first restart at once, then 0.5 s doubling
     h.exit(1)
-    assert h.node.sm.state == S.FATAL and '3 restarts in a row failed' in h.states()[-1] + (
+    assert h.state() == S.FATAL and '3 restarts in a row failed' in h.states()[-1] + (
         h.sup.events_log.of('fatal')[0]['reason'])
     assert h.sup.safety.log == HELD  # nothing will release it
     assert len(h.sup.launcher.children) == 4
     h.node.stop()
-    assert h.node.sm.state == S.STOPPED and h.sup.safety.log == HELD
+    assert h.state() == S.STOPPED and h.sup.safety.log == HELD
 
 
 def test_a_start_that_ran_stable_after_resets_the_crash_count(tmp_path: Path) -> None:
@@ -130,7 +131,7 @@ def test_a_start_that_ran_stable_after_resets_the_crash_count(tmp_path: Path) ->
         h.tick(11.0)
         h.beat()
         h.exit(1)
-        assert h.node.sm.state == S.RESTORING  # restarted at once, no backoff
+        assert h.state() == S.RESTORING  # restarted at once, no backoff
         h.beat()
         h.up()
     assert not h.sup.events_log.of('fatal') and h.node.policy.consecutive == 1
@@ -156,7 +157,7 @@ def test_a_beating_node_is_not_hung_however_long_it_runs(tmp_path: Path) -> None
     for _ in range(20):
         h.tick(1.0)
         h.beat()
-    assert h.child.signals == [] and h.node.sm.state == S.RUNNING
+    assert h.child.signals == [] and h.state() == S.RUNNING
 
 
 def test_a_process_that_never_beats_is_killed_at_its_start_timeout(tmp_path: Path) -> None:
@@ -190,7 +191,7 @@ def test_a_supervisor_restarted_on_its_store_resumes_the_node_as_a_recovery(
     assert h.child.env[protocol.ENV_MODE] == 'recover'
     assert h.sup.events_log.of('resumed')[0]['unrecorded_s'] is None
     h.up()
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.state() == S.RUNNING and h.sup.safety.log == ONCE
 
 
 GATE = {'release_gate': {'timeout': 30.0, 'on_timeout': 'give_up'}}
@@ -204,16 +205,16 @@ def test_a_gated_node_waits_for_the_call_then_opens_and_releases_the_safe_state(
     h.exit(-signal.SIGKILL)
     assert h.child.env[protocol.ENV_GATED] == '1'
     h.up()
-    assert h.node.sm.state == S.GATED and h.sup.safety.holders == {'n'}
+    assert h.state() == S.GATED and h.sup.safety.holders == {'n'}
     assert not h.sup.events_log.of('recovered')
     h.tick(10.0)
-    assert h.node.sm.state == S.GATED and h.envelopes() == []
+    assert h.state() == S.GATED and h.envelopes() == []
     assert h.call_release() == (True, 'n: released')
     assert h.envelopes() == [protocol.Open(2)]
     h.tick(0.06)  # no OPENED yet: OPEN again (SYNC_PERIOD later)
     assert h.envelopes() == [protocol.Open(2)] * 2
     h.status(OpenedStatus(muted=7))
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.state() == S.RUNNING and h.sup.safety.log == ONCE
     (recovered,) = h.sup.events_log.of('recovered')
     assert recovered['gate_ms'] == pytest.approx(10060.0) and 'called' in recovered['gate']
     assert h.sup.events_log.of('gate_opened')[0]['muted'] == 7
@@ -226,9 +227,9 @@ def test_a_call_during_the_recovery_opens_the_gate_as_soon_as_it_is_reached(
     h.exit(-signal.SIGKILL)
     assert h.call_release() == (True, 'n: restoring; released as soon as it has caught up')
     h.up()
-    assert h.node.sm.state == S.GATED and h.envelopes() == [protocol.Open(2)]
+    assert h.state() == S.GATED and h.envelopes() == [protocol.Open(2)]
     h.status(OpenedStatus(muted=0))
-    assert h.node.sm.state == S.RUNNING
+    assert h.state() == S.RUNNING
 
 
 def test_a_gate_nobody_calls_gives_up_at_its_timeout_holding_the_safe_state(
@@ -241,9 +242,9 @@ def test_a_gate_nobody_calls_gives_up_at_its_timeout_holding_the_safe_state(
     for _ in range(29):  # live while it waits: beating
         h.tick(1.0)
         h.beat()
-        assert h.node.sm.state == S.GATED
+        assert h.state() == S.GATED
     h.tick(1.5)
-    assert h.node.sm.state == S.FATAL and gated.signals == [signal.SIGKILL]
+    assert h.state() == S.FATAL and gated.signals == [signal.SIGKILL]
     assert 'within 30 s; on_timeout: give_up' in h.sup.events_log.of('fatal')[0]['reason']
     assert h.sup.safety.log == HELD
     h.sup.events.get(timeout=5.0)  # its exit, reaped: ignored, it was ended on purpose
@@ -258,10 +259,10 @@ def test_a_crash_at_the_gate_is_a_crash_of_the_same_recovery(tmp_path: Path) -> 
     assert h.states()[-3:] == ['GATED', 'CRASHED', 'BACKOFF']
     h.tick(1.0)
     h.up()
-    assert h.node.sm.state == S.GATED and h.sup.safety.log == HELD
+    assert h.state() == S.GATED and h.sup.safety.log == HELD
     h.call_release()
     h.status(OpenedStatus(muted=0))
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.state() == S.RUNNING and h.sup.safety.log == ONCE
     assert h.sup.events_log.of('recovered')[0]['crashes'] == 2
 
 
@@ -273,7 +274,7 @@ def test_a_stale_variable_under_refuse_stops_the_node_with_the_safe_state_held(
     verdict = Verdict(age_s=42.0, clock='system', refused=['pose'], max_age={'pose': 5.0})
     h.hello(restored=RestoredCheckpoint(seq=3, cut=None, created_ns=1, parameters=(),
                                         lifecycle=None, freshness=verdict))
-    assert h.node.sm.state == S.FATAL and h.child.signals == [signal.SIGKILL]
+    assert h.state() == S.FATAL and h.child.signals == [signal.SIGKILL]
     reason = h.sup.events_log.of('fatal')[0]['reason']
     assert reason.startswith('checkpoint too old for pose (age 42.0 s on the system clock')
     assert h.sup.safety.log == HELD and h.node.health(h.clock()).fatal_reason == reason
@@ -300,14 +301,14 @@ def test_a_rory_node_arms_then_recovers_with_the_ring_taking_its_inputs_into_r(
     assert h.states()[-2:] == ['CRASHED', 'RESTORING']
     assert ring.activations == 1 and isinstance(ring.sinks[0], RecoveryLog)  # S2
     h.hello()
-    assert h.node.sm.state == S.REPLAYING
+    assert h.state() == S.REPLAYING
     assert h.envelopes()[-1] == protocol.Sync(2, h.node.current.sync_nonce)
     h.synced()
     h.replayed()  # nothing logged after the cut, R empty: RELEASE at once
     assert isinstance(h.envelopes()[-1], protocol.Release) and ring.sinks[0].sealed
     h.clock.advance(0.25)
     h.released()
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.state() == S.RUNNING and h.sup.safety.log == ONCE
     (recovered,) = h.sup.events_log.of('recovered')
     assert recovered['total_ms'] == pytest.approx(250.0) and recovered['replay'] == 'fast'
 
@@ -316,12 +317,12 @@ def test_a_crash_while_arming_is_recovered_like_any_other(tmp_path: Path) -> Non
     h = Harness(tmp_path, method='rory')
     h.node.start()
     h.hello()
-    assert h.node.sm.state == S.ARMING
+    assert h.state() == S.ARMING
     h.exit(1)
     assert h.states()[-3:] == ['ARMING', 'CRASHED', 'RESTORING']
     assert h.sup.rings[0].activations == 1 and h.sup.safety.log == HELD
     h.up()
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.state() == S.RUNNING and h.sup.safety.log == ONCE
 
 
 def test_a_crash_before_the_first_hello_starts_r_when_the_ring_is_made(tmp_path: Path) -> None:
@@ -335,7 +336,7 @@ def test_a_crash_before_the_first_hello_starts_r_when_the_ring_is_made(tmp_path:
     h.synced()
     h.replayed()
     h.released()
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.state() == S.RUNNING and h.sup.safety.log == ONCE
 
 
 @pytest.mark.parametrize('when', ['before_synced', 'after_release_sent'])
@@ -354,7 +355,7 @@ def test_a_crash_while_replaying_is_the_same_recovery(tmp_path: Path, when: str)
     assert ring.activations == (2 if when == 'after_release_sent' else 1)
     h.tick(0.5)
     h.up()
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.state() == S.RUNNING and h.sup.safety.log == ONCE
     (recovered,) = h.sup.events_log.of('recovered')
     assert recovered['crashes'] == 2
     assert recovered['total_ms'] == pytest.approx(600.0)  # from the first crash
@@ -370,7 +371,7 @@ def test_the_handover_ends_the_recovery_without_releasing_the_safe_state_again(
     assert h.node.recovery is not None and ring.active_topics == {INPUT.topic}  # relaying
     h.status(SwitchedStatus(topic=INPUT.topic, passed_by_relay=()))
     assert h.node.recovery is None and ring.active_topics == set()
-    assert h.sup.safety.log == ONCE and h.node.sm.state == S.RUNNING
+    assert h.sup.safety.log == ONCE and h.state() == S.RUNNING
 
 
 def _relayed(seq: int) -> LogEntry:
@@ -420,11 +421,11 @@ def test_a_supervisor_restarted_on_its_store_joins_the_ring_at_hello(tmp_path: P
     h.node.start_resumed(down_since=None)
     assert h.sup.rings == [] and h.sup.safety.log == HELD
     h.hello()
-    assert h.sup.rings[0].activations == 1 and h.node.sm.state == S.REPLAYING
+    assert h.sup.rings[0].activations == 1 and h.state() == S.REPLAYING
     h.synced()
     h.replayed()
     h.released()
-    assert h.node.sm.state == S.RUNNING and h.sup.safety.log == ONCE
+    assert h.state() == S.RUNNING and h.sup.safety.log == ONCE
 
 
 def test_a_late_heartbeat_keeps_the_inputs_and_a_hang_hands_them_to_r(tmp_path: Path) -> None:
@@ -465,7 +466,7 @@ def test_a_starved_node_beating_late_is_never_taken_for_crashed(tmp_path: Path) 
         h.tick(0.0)
         assert h.node.early_capture is None and ring.active_topics == set()
     assert h.child.signals == [] and h.sup.safety.log == []
-    assert h.node.sm.state == S.RUNNING and h.node.recovery is None
+    assert h.state() == S.RUNNING and h.node.recovery is None
     assert not any(h.sup.events_log.of(kind) for kind in ('hang', 'exit', 'recovered'))
     # The hang timeout itself passing is a hang: stacks dumped, then killed, then recovered.
     h.tick(5.01)
@@ -477,7 +478,7 @@ def test_a_clean_exit_during_a_recovery_releases_the_safe_state_once(tmp_path: P
     h.exit(-signal.SIGKILL)
     h.hello()
     h.exit(0)
-    assert h.node.sm.state == S.EXITED and h.node.recovery is None
+    assert h.state() == S.EXITED and h.node.recovery is None
     assert h.sup.safety.log == ONCE and not h.sup.events_log.of('recovered')
 
 
@@ -490,7 +491,7 @@ def test_stopping_during_a_recovery_keeps_the_safe_state_held(tmp_path: Path) ->
     recovery = h.node.recovery
     child = h.child
     h.node.stop()
-    assert child.signals == [signal.SIGINT] and h.node.sm.state == S.STOPPED
+    assert child.signals == [signal.SIGINT] and h.state() == S.STOPPED
     assert recovery is not None and recovery.streamer is None and h.sup.safety.log == HELD
 
 

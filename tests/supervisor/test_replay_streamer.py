@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import pytest
@@ -112,6 +112,16 @@ def streamers() -> Iterator[list[ReplayStreamer]]:
         assert ended(s)
 
 
+def seqs(envelopes: Sequence[object]) -> list[int]:
+    """The sequence numbers of MSG envelopes (and fails on any other kind)."""
+    assert all(isinstance(e, Msg) for e in envelopes), envelopes
+    return [e.seq for e in envelopes if isinstance(e, Msg)]
+
+
+Make = Callable[..., tuple['ReplayStreamer', 'FakePublisher', RecoveryLog, 'Released']]
+"""The ``make`` fixture: a streamer, its publisher, R and its release."""
+
+
 @pytest.fixture
 def make(
     segments: SegmentStore, streamers: list[ReplayStreamer]
@@ -129,7 +139,7 @@ def make(
         pub = FakePublisher()
         released = Released()
         streamer = ReplayStreamer(
-            pub,  # type: ignore[arg-type]
+            pub,
             INCARNATION,
             iter(backlog),
             rlog,
@@ -146,7 +156,7 @@ def make(
 # --------------------------------------------------------------------------- FAST
 
 
-def test_fast_streams_backlog_then_r_then_one_release(make: Callable[..., tuple]) -> None:
+def test_fast_streams_backlog_then_r_then_one_release(make: Make) -> None:
     backlog = [entry('/a', 1), entry('/b', 2), entry('/a', 3)]
     r_entries = [entry('/a', 4), entry('/b', 5)]
     streamer, pub, rlog, released = make(backlog, r_entries)
@@ -161,7 +171,7 @@ def test_fast_streams_backlog_then_r_then_one_release(make: Callable[..., tuple]
     assert streamer.sent == 5
 
 
-def test_release_delivered_equals_msg_envelopes_sent(make: Callable[..., tuple]) -> None:
+def test_release_delivered_equals_msg_envelopes_sent(make: Make) -> None:
     backlog = [entry('/a', n) for n in range(7)]
     streamer, pub, rlog, released = make(backlog, [entry('/b', 100), entry('/b', 101)])
     streamer.start()
@@ -174,7 +184,7 @@ def test_release_delivered_equals_msg_envelopes_sent(make: Callable[..., tuple])
     assert releases[0].next_segment == rlog.number + 1
 
 
-def test_release_with_nothing_to_replay(make: Callable[..., tuple]) -> None:
+def test_release_with_nothing_to_replay(make: Make) -> None:
     streamer, pub, rlog, released = make([], [])
     streamer.start()
     assert released.event.wait(WAIT)
@@ -182,7 +192,7 @@ def test_release_with_nothing_to_replay(make: Callable[..., tuple]) -> None:
     assert released.counts == [0]
 
 
-def test_release_seals_r(make: Callable[..., tuple], segments: SegmentStore) -> None:
+def test_release_seals_r(make: Make, segments: SegmentStore) -> None:
     r_entries = [entry('/a', 1)]
     streamer, _pub, rlog, released = make([], r_entries)
     assert not rlog.sealed
@@ -194,7 +204,9 @@ def test_release_seals_r(make: Callable[..., tuple], segments: SegmentStore) -> 
     assert list(read_segment(path)) == r_entries
 
 
-def test_r_sealed_before_release_is_published(make: Callable[..., tuple]) -> None:
+def test_r_sealed_before_release_is_published(
+    make: Make, monkeypatch: pytest.MonkeyPatch
+) -> None:
     streamer, pub, rlog, _released = make([], [entry('/a', 1)])
     sealed_at_release: list[bool] = []
     original = pub.publish
@@ -204,14 +216,14 @@ def test_r_sealed_before_release_is_published(make: Callable[..., tuple]) -> Non
             sealed_at_release.append(rlog.sealed)
         original(raw)
 
-    pub.publish = publish  # type: ignore[method-assign]
+    monkeypatch.setattr(pub, 'publish', publish)
     streamer.start()
     pub.wait_for(2)
     assert sealed_at_release == [True]
 
 
 def test_entries_added_to_r_during_the_backlog_come_before_release(
-    make: Callable[..., tuple], segments: SegmentStore
+    make: Make, segments: SegmentStore
 ) -> None:
     rlog = RecoveryLog(segments, {})
     during = entry('/live', 50)
@@ -225,13 +237,13 @@ def test_entries_added_to_r_during_the_backlog_come_before_release(
     streamer.start()
     assert released.event.wait(WAIT)
     envelopes = pub.envelopes
-    assert [e.seq for e in envelopes[:-1]] == [1, 2, 40, 50]  # type: ignore[attr-defined]
+    assert seqs(envelopes[:-1]) == [1, 2, 40, 50]
     assert all(isinstance(e, Msg) and e.flags == 0 for e in envelopes[:-1])
     assert envelopes[-1] == Release(INCARNATION, rlog.number + 1, 4)
     assert list(rlog.relay) == []
 
 
-def test_after_release_entries_are_relayed_with_flag(make: Callable[..., tuple]) -> None:
+def test_after_release_entries_are_relayed_with_flag(make: Make) -> None:
     streamer, pub, rlog, released = make([entry('/a', 1)], [entry('/a', 2)])
     streamer.start()
     assert released.event.wait(WAIT)
@@ -246,7 +258,7 @@ def test_after_release_entries_are_relayed_with_flag(make: Callable[..., tuple])
     assert rlog.entries == [entry('/a', 2)]  # relayed entries are not part of R's segment
 
 
-def test_switched_topics_are_not_relayed(make: Callable[..., tuple]) -> None:
+def test_switched_topics_are_not_relayed(make: Make) -> None:
     streamer, pub, rlog, released = make([], [entry('/a', 1)])
     streamer.start()
     assert released.event.wait(WAIT)
@@ -265,7 +277,7 @@ def test_switched_topics_are_not_relayed(make: Callable[..., tuple]) -> None:
 
 
 def test_an_idle_relay_says_it_is_alive(
-    make: Callable[..., tuple], monkeypatch: pytest.MonkeyPatch
+    make: Make, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # Nothing reaches the ring (a link outage): the node must not take the relay for dead.
     monkeypatch.setattr(recovery, 'RELAY_KEEPALIVE_S', 0.05)
@@ -278,7 +290,7 @@ def test_an_idle_relay_says_it_is_alive(
 
 
 def test_an_alive_follows_only_a_keepalive_period_without_anything_sent(
-    make: Callable[..., tuple], monkeypatch: pytest.MonkeyPatch
+    make: Make, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     period = 0.2
     monkeypatch.setattr(recovery, 'RELAY_KEEPALIVE_S', period)
@@ -301,7 +313,7 @@ def test_an_alive_follows_only_a_keepalive_period_without_anything_sent(
     assert times[relayed_at + 1] - times[relayed_at] >= period - 0.01
 
 
-def test_stop_ends_the_relay_promptly(make: Callable[..., tuple]) -> None:
+def test_stop_ends_the_relay_promptly(make: Make) -> None:
     streamer, pub, _rlog, released = make([], [entry('/a', 1)])
     streamer.start()
     assert released.event.wait(WAIT)
@@ -314,7 +326,7 @@ def test_stop_ends_the_relay_promptly(make: Callable[..., tuple]) -> None:
     assert len(pub.raw) == 2
 
 
-def test_streamer_can_be_joined_like_any_thread(make: Callable[..., tuple]) -> None:
+def test_streamer_can_be_joined_like_any_thread(make: Make) -> None:
     """ReplayStreamer is a threading.Thread: join() and is_alive() must work after stop()."""
     streamer, _pub, _rlog, released = make([], [])
     streamer.start()
@@ -325,7 +337,7 @@ def test_streamer_can_be_joined_like_any_thread(make: Callable[..., tuple]) -> N
     assert not streamer.is_alive()
 
 
-def test_stop_during_paced_backlog_sends_no_release(make: Callable[..., tuple]) -> None:
+def test_stop_during_paced_backlog_sends_no_release(make: Make) -> None:
     crashed = BASE_NS + 100 * 10**9
     backlog = [entry('/a', 1, BASE_NS), entry('/a', 2, BASE_NS + 30 * 10**9)]
     streamer, pub, rlog, released = make(backlog, [], ReplayPace.PACED, crashed)
@@ -340,7 +352,7 @@ def test_stop_during_paced_backlog_sends_no_release(make: Callable[..., tuple]) 
     assert not rlog.sealed
 
 
-def test_log_error_while_reading_the_backlog_is_recorded(make: Callable[..., tuple]) -> None:
+def test_log_error_while_reading_the_backlog_is_recorded(make: Make) -> None:
     def backlog() -> Iterator[LogEntry]:
         yield entry('/a', 1)
         raise LogError(Path('/x/0000000001'), 'malformed message record at offset 8')
@@ -357,7 +369,7 @@ def test_log_error_while_reading_the_backlog_is_recorded(make: Callable[..., tup
     rlog.close()
 
 
-def test_fast_ignores_recorded_gaps(make: Callable[..., tuple]) -> None:
+def test_fast_ignores_recorded_gaps(make: Make) -> None:
     backlog = [entry('/a', n, BASE_NS + n * 10**9) for n in range(3)]  # 1 s apart
     streamer, _pub, _rlog, released = make(
         backlog, [], ReplayPace.FAST, crashed_ns=BASE_NS + 10 * 10**9
@@ -372,7 +384,7 @@ def test_fast_ignores_recorded_gaps(make: Callable[..., tuple]) -> None:
 
 
 def test_paced_spaces_entries_before_the_crash_by_recorded_gaps(
-    make: Callable[..., tuple],
+    make: Make,
 ) -> None:
     gap = 100_000_000  # 100 ms
     crashed = BASE_NS + 10 * gap
@@ -381,13 +393,13 @@ def test_paced_spaces_entries_before_the_crash_by_recorded_gaps(
     streamer.start()
     assert released.event.wait(WAIT)
     t = pub.times
-    assert [e.seq for e in pub.envelopes[:3]] == [0, 1, 2]  # type: ignore[attr-defined]
+    assert seqs(pub.envelopes[:3]) == [0, 1, 2]
     assert t[0] <= t[1] <= t[2]
     assert t[1] - t[0] >= 0.08
     assert t[2] - t[0] >= 0.18
 
 
-def test_paced_does_not_pace_entries_after_the_crash(make: Callable[..., tuple]) -> None:
+def test_paced_does_not_pace_entries_after_the_crash(make: Make) -> None:
     gap = 100_000_000
     crashed = BASE_NS + 2 * gap
     backlog = [entry('/a', 0, BASE_NS), entry('/a', 1, BASE_NS + gap), entry('/a', 2, crashed)]
@@ -397,14 +409,14 @@ def test_paced_does_not_pace_entries_after_the_crash(make: Callable[..., tuple])
     assert released.event.wait(WAIT)
     t = pub.times
     envelopes = pub.envelopes
-    assert [e.seq for e in envelopes[:5]] == [0, 1, 2, 3, 4]  # type: ignore[attr-defined]
+    assert seqs(envelopes[:5]) == [0, 1, 2, 3, 4]
     assert envelopes[5] == Release(INCARNATION, rlog.number + 1, 5)
     assert t[2] - t[0] >= 0.18  # the entry received exactly at the crash is still paced
     assert t[5] - t[2] < 1.0  # 5 s and 10 s recorded gaps after the crash are not waited for
 
 
 def test_paced_r_entries_before_the_crash_are_paced_after_the_backlog(
-    make: Callable[..., tuple],
+    make: Make,
 ) -> None:
     """The ring's backlog in R was received before the crash: it keeps its recorded gap."""
     gap = 100_000_000

@@ -277,7 +277,9 @@ def test_nodes_reading_a_topic_alike_share_one_reader(ros_domain: int) -> None:
         ctx.shutdown()
 
 
-def test_a_message_taken_during_another_nodes_activation_reaches_both(ros_domain: int) -> None:
+def test_a_message_taken_during_another_nodes_activation_reaches_both(
+    ros_domain: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # Two nodes sharing a reader, struck together: the first one's view is active, a message
     # arrives, and the second one activates before the ring's thread has taken it (under load,
     # it had not). Both must get it, once each. It once went to the second node's backlog only,
@@ -303,12 +305,12 @@ def test_a_message_taken_during_another_nodes_activation_reaches_both(ros_domain
         assert [e.seq for e in taken_first] == [1]
         # The ring's thread is late: it takes nothing until the second node has activated.
         late = threading.Event()
-        reader.take_new = late.wait  # type: ignore[method-assign,assignment]
+        monkeypatch.setattr(reader, 'take_new', late.wait)
         pub.publish(Int64(data=2))
         pub.wait_for_all_acked(Duration(seconds=5.0))
         taken_second = Capture()
         second.activate(taken_second)
-        del reader.take_new  # the thread takes again: message 2 is still in DDS
+        monkeypatch.undo()  # the thread takes again: message 2 is still in DDS
         late.set()
         _settle(pub, taken_second, 2)
         _settle(pub, taken_first, 2)

@@ -6,6 +6,7 @@ import textwrap
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import cast
 
 import pytest
 import rclpy
@@ -36,7 +37,8 @@ safe_state:
 class _Heard:
     def __init__(self, node: Node, topic: str) -> None:
         self.values: list[bool] = []
-        node.create_subscription(Bool, topic, lambda m: self.values.append(m.data), LATCHED_QOS)
+        node.create_subscription(Bool, topic, lambda m: self.values.append(cast(Bool, m).data),
+                                 LATCHED_QOS)
 
 
 @pytest.fixture

@@ -9,13 +9,19 @@ import stat
 import subprocess
 import sys
 import textwrap
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from rory_eval.harness.scenario import scenario_env
 from rory_runtime.errors import ConfigError
-from rory_runtime.supervisor.config import check_commands, check_store, load_config
+from rory_runtime.supervisor.config import (
+    SupervisorConfig,
+    check_commands,
+    check_store,
+    load_config,
+)
 from rory_runtime.supervisor.embed import absolute_file_arguments
 
 
@@ -25,9 +31,9 @@ def _config(tmp_path: Path, text: str) -> Path:
     return path
 
 
-def _refused(check: object, path: Path) -> ConfigError:
+def _refused(check: Callable[[SupervisorConfig], None], path: Path) -> ConfigError:
     with pytest.raises(ConfigError) as caught:
-        check(load_config(path))  # type: ignore[operator]
+        check(load_config(path))
     return caught.value
 
 

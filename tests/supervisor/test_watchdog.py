@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import signal
 from pathlib import Path
+from typing import cast
 
 import pytest
 
@@ -47,6 +48,11 @@ class Beats:
         return self.now
 
 
+
+def near(value: float) -> float:
+    """``pytest.approx(value)`` where a float is expected: it compares equal to one."""
+    return cast(float, pytest.approx(value))
+
 def _watchdog(hang: float | None = 5.0, start: float | None = 30.0) -> tuple[Watchdog, Beats]:
     beats = Beats()
     dog = Watchdog(SLOT, beats.clock, beats.read, hang_timeout=hang, start_timeout=start)
@@ -58,7 +64,7 @@ def test_a_process_that_never_beats_is_killed_at_its_start_timeout_and_only_once
     dog, beats = _watchdog(start=30.0)
     assert dog.check(beats.advance(29.0), heard=False) == []
     (hung,) = dog.check(beats.advance(2.0), heard=False)
-    assert hung == Hung('start', pytest.approx(31.0), 30.0, signal.SIGKILL)
+    assert hung == Hung('start', near(31.0), 30.0, signal.SIGKILL)
     assert dog.kill_reason == 'hung (no start for 31.0 s)'
     assert dog.check(beats.advance(5.0), heard=False) == []  # its exit is reaped as a crash
 
@@ -74,7 +80,7 @@ def test_a_beat_from_before_the_process_started_is_not_its_own() -> None:
     beats.advance(1.0)
     dog.watch()
     assert dog.check(beats.advance(31.0), heard=True)[0] == Hung(
-        'start', pytest.approx(31.0), 30.0, signal.SIGKILL)
+        'start', near(31.0), 30.0, signal.SIGKILL)
 
 
 def test_a_beating_process_is_reported_on_time_however_long_it_runs() -> None:
@@ -82,7 +88,7 @@ def test_a_beating_process_is_reported_on_time_however_long_it_runs() -> None:
     for _ in range(20):
         beats.advance(1.0)
         beats.beat()
-        assert dog.check(beats.advance(0.2), heard=True) == [Beat(pytest.approx(0.2), False)]
+        assert dog.check(beats.advance(0.2), heard=True) == [Beat(near(0.2), False)]
     assert dog.kill_reason is None
 
 
@@ -90,13 +96,13 @@ def test_a_beat_older_than_stall_suspect_is_late_at_most_half_the_hang_timeout()
     dog, beats = _watchdog(hang=5.0)
     beats.beat()
     (beat,) = dog.check(beats.advance(STALL_SUSPECT - 0.1), heard=True)
-    assert not beat.late
+    assert isinstance(beat, Beat) and not beat.late
     (beat,) = dog.check(beats.advance(0.1), heard=True)
-    assert beat == Beat(pytest.approx(STALL_SUSPECT), True)
+    assert beat == Beat(near(STALL_SUSPECT), True)
     short, beats = _watchdog(hang=0.8)
     beats.beat()
     (beat,) = short.check(beats.advance(0.4), heard=True)
-    assert beat.late
+    assert isinstance(beat, Beat) and beat.late
 
 
 def test_a_hung_process_gets_sigusr1_then_sigkill_after_the_dump_grace() -> None:
@@ -104,8 +110,8 @@ def test_a_hung_process_gets_sigusr1_then_sigkill_after_the_dump_grace() -> None
     beats.beat()
     assert dog.check(beats.advance(5.0), heard=True) == [Beat(5.0, True)]
     late, hung = dog.check(beats.advance(0.5), heard=True)
-    assert late == Beat(pytest.approx(5.5), True)
-    assert hung == Hung('heartbeat', pytest.approx(5.5), 5.0, signal.SIGUSR1)
+    assert late == Beat(near(5.5), True)
+    assert hung == Hung('heartbeat', near(5.5), 5.0, signal.SIGUSR1)
     assert dog.kill_reason == 'hung (no heartbeat for 5.5 s)'
     assert dog.check(beats.advance(HANG_DUMP_GRACE / 2), heard=True) == []  # dumping
     assert dog.check(beats.advance(HANG_DUMP_GRACE / 2), heard=True) == [KillDue()]
@@ -141,7 +147,7 @@ def test_a_process_never_heard_is_killed_at_its_own_hello_timeout() -> None:
     beats.beat()
     findings = dog.check(beats.advance(0.2), heard=False)
     unheard = [f for f in findings if isinstance(f, Unheard)]
-    assert len(unheard) == 1 and unheard[0].beating_s == pytest.approx(1.6)
+    assert len(unheard) == 1 and unheard[0].beating_s == near(1.6)
 
 
 def test_a_heard_process_is_never_unheard() -> None:
@@ -159,7 +165,7 @@ def test_a_new_process_starts_with_nothing_held_against_it() -> None:
     dog.watch()
     assert dog.kill_reason is None
     beats.beat()
-    assert dog.check(beats.advance(0.1), heard=True) == [Beat(pytest.approx(0.1), False)]
+    assert dog.check(beats.advance(0.1), heard=True) == [Beat(near(0.1), False)]
 
 
 def test_checkpoints_are_overdue_after_three_intervals_of_running_and_said_once() -> None:
@@ -168,13 +174,13 @@ def test_checkpoints_are_overdue_after_three_intervals_of_running_and_said_once(
     limit = OVERDUE_INTERVALS * 2.0
     assert dog.checkpoint_overdue(beats.advance(limit), released, 2.0) is None
     assert dog.overdue_news(beats.now, released, 2.0) is None
-    assert dog.checkpoint_overdue(beats.advance(1.0), released, 2.0) == pytest.approx(1.0)
+    assert dog.checkpoint_overdue(beats.advance(1.0), released, 2.0) == near(1.0)
     assert dog.overdue_news(beats.now, released, 2.0) == CheckpointsOverdue(None)  # never one
     assert dog.overdue_news(beats.advance(5.0), released, 2.0) is None  # said already
     dog.checkpoint_taken(beats.now)
     assert dog.checkpoint_overdue(beats.advance(limit), released, 2.0) is None
     assert dog.overdue_news(beats.advance(1.0), released, 2.0) == CheckpointsOverdue(
-        pytest.approx(limit + 1.0))
+        near(limit + 1.0))
 
 
 def test_a_node_not_running_released_is_never_overdue() -> None:

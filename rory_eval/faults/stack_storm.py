@@ -34,6 +34,7 @@ steps among it, is written to ``OUT/storm.json``. Exit 0 only if every run passe
 arguments.
 
     python -m rory_eval.faults.stack_storm --runs 3 [--world real_room] [--out DIR]
+        [--standbys N]   # the pool's size; default the supervisor's (3 for six nodes)
 """
 
 from __future__ import annotations
@@ -87,8 +88,9 @@ def node_argv(name: str, world: str) -> list[str]:
     return target.argv(world, *remap)
 
 
-def storm_config(world: str, out: Path, instrumented: Path) -> Path:
-    """One supervisor config for the six, each its instrumented copy, /e_stop held."""
+def storm_config(world: str, out: Path, instrumented: Path, standbys: int | None = None) -> Path:
+    """One supervisor config for the six, each its instrumented copy, /e_stop held;
+    ``standbys``: the pool's size (None: the supervisor's default)."""
     nodes = []
     for name in STACK:
         argv = node_argv(name, world)
@@ -102,6 +104,7 @@ def storm_config(world: str, out: Path, instrumented: Path) -> Path:
                         'hold': {'data': True}, 'release': {'data': False}}],
         'store': str(out / 'store'),
         'prefix_output': True,
+        **({} if standbys is None else {'standbys': standbys}),
     }
     out.mkdir(parents=True, exist_ok=True)
     path = out / 'stack.yaml'
@@ -277,15 +280,15 @@ def describe(storm: Storm) -> str:
 
 # -- the runs ---------------------------------------------------------------------------------
 
-def run_pair(world: str, out: Path, *, domain_id: int, seed: int,
-             repetition: int) -> tuple[Storm, dict[str, Any]]:
+def run_pair(world: str, out: Path, *, domain_id: int, seed: int, repetition: int,
+             standbys: int | None = None) -> tuple[Storm, dict[str, Any]]:
     """The reference, then the storm, both in ``out``; judged. Every process is reaped."""
     spec = _base_spec(world, seed, repetition)
     reference = out / 'reference'
     _stack_run(BARE, world, reference, domain_id=domain_id, seed=seed, spec=spec)
     storm_dir = out / 'storm'
     details = _stack_run(METHOD, world, storm_dir, domain_id=domain_id, seed=seed, spec=spec,
-                         instrumented=out.parent / 'instrumented')
+                         instrumented=out.parent / 'instrumented', standbys=standbys)
     verdicts = judge_targets([(storm_dir / n, reference / n) for n in STACK])
     storm = analyse(details['kills'], details['events'], details['safe'],
                     dict(zip(STACK, verdicts, strict=True)))
@@ -299,7 +302,8 @@ def _base_spec(world: str, seed: int, repetition: int) -> dict[str, Any]:
 
 
 def _stack_run(method: str, world: str, out: Path, *, domain_id: int, seed: int,
-               spec: dict[str, Any], instrumented: Path | None = None) -> dict[str, Any]:
+               spec: dict[str, Any], instrumented: Path | None = None,
+               standbys: int | None = None) -> dict[str, Any]:
     """One run of the six, bare or under one supervisor (struck); each target's record
     folder (``out/NAME``: record.json, its map or model) in the runner's layout."""
     from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -321,7 +325,7 @@ def _stack_run(method: str, world: str, out: Path, *, domain_id: int, seed: int,
     striker = None
     if rory:
         assert instrumented is not None
-        config = storm_config(world, out, instrumented)
+        config = storm_config(world, out, instrumented, standbys)
         pool = load_config(config).standby_pool_size
         run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
                                     str(config)])
@@ -430,12 +434,16 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument('--runs', type=int, default=3, help='storms, each with its reference')
     parser.add_argument('--world', default='real_room', choices=WORLDS)
     parser.add_argument('--seed', type=int, default=0, help='simulator seed (+ run)')
+    parser.add_argument('--standbys', type=int, default=None,
+                        help="the standby pool's size (default: the supervisor's, 3 for six)")
     parser.add_argument('--domain', type=int, default=95, help='ROS domain id to use')
     parser.add_argument('--out', type=Path,
                         help='keep the runs here (default: a temporary folder, kept on failure)')
     args = parser.parse_args(argv)
     if args.runs < 1:
         parser.error('--runs must be at least 1')
+    if args.standbys is not None and args.standbys < 1:
+        parser.error('--standbys must be at least 1')
     if not 0 <= args.domain <= 101:
         parser.error('--domain must be 0-101 (higher ids have ports in the ephemeral range)')
     return args
@@ -472,7 +480,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         folder = root / f'run{i:03d}'
         began = time.monotonic()
         storm, details = run_pair(args.world, folder, domain_id=args.domain,
-                                  seed=args.seed + i, repetition=i)
+                                  seed=args.seed + i, repetition=i, standbys=args.standbys)
         storms.append(storm)
         record.append({'run': i, 'seed': args.seed + i, 'pool': details['pool'],
                        'struck_at': details['struck_at'], 'kills': details['kills'],

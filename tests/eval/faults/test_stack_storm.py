@@ -192,6 +192,7 @@ def test_each_mapping_target_has_its_own_map_topic_and_the_clock_waits_for_every
     (['--runs', 'two'], "argument --runs: invalid int value: 'two'"),
     (['--world', 'moon'], 'argument --world: invalid choice'),
     (['--domain', '230'], '--domain must be 0-101'),
+    (['--standbys', '0'], '--standbys must be at least 1'),
     (['--bound', '2'], 'unrecognized arguments: --bound 2'),
 ])
 def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], said: str,

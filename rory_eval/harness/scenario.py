@@ -310,16 +310,46 @@ def prepare(
     return path
 
 
-class _Observer:
-    """Subscribes to the node's state and the safe-state topic in its own rclpy context."""
+class _Listener:
+    """A node of its own, in its own rclpy context, spun by a thread of this process: what a
+    run's observers and readers stand on."""
 
-    def __init__(self, domain_id: int, state_topic: str = INTEGRATOR.state_topic) -> None:
+    def __init__(self, domain_id: int, node_name: str) -> None:
         self.context = Context()
         rclpy.init(
             context=self.context, domain_id=domain_id,
             signal_handler_options=SignalHandlerOptions.NO,
         )
-        self.node = Node('scenario_observer', context=self.context)
+        self.node = Node(node_name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self._closing = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+
+    def _start(self) -> None:
+        """Spin, once the subscriptions are made."""
+        self.executor.add_node(self.node)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._closing.is_set() and self.context.ok():
+            with contextlib.suppress(Exception):
+                self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self) -> None:
+        # Executor and node before the context: an executor collected after its context is
+        # gone prints "Exception ignored in Executor.__del__" at exit.
+        self._closing.set()
+        self._thread.join(timeout=2.0)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+class _Observer(_Listener):
+    """Subscribes to the node's state and the safe-state topic in its own rclpy context."""
+
+    def __init__(self, domain_id: int, state_topic: str = INTEGRATOR.state_topic) -> None:
+        super().__init__(domain_id, 'scenario_observer')
         latched = QoSProfile(
             depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
             reliability=ReliabilityPolicy.RELIABLE,
@@ -332,16 +362,7 @@ class _Observer:
         # does not match a volatile writer); this observer starts before the node anyway.
         self.node.create_subscription(String, state_topic, self._on_state, QoSProfile(depth=10))
         self.node.create_subscription(Bool, '/e_stop', self._on_e_stop, latched)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._closing = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._closing.is_set() and self.context.ok():
-            with contextlib.suppress(Exception):
-                self.executor.spin_once(timeout_sec=0.05)
+        self._start()
 
     def _on_state(self, msg: String) -> None:
         state = json.loads(msg.data)
@@ -352,15 +373,6 @@ class _Observer:
 
     def _on_e_stop(self, msg: Bool) -> None:
         self.e_stop.append((time.monotonic(), bool(msg.data)))
-
-    def close(self) -> None:
-        # Executor and node before the context: an executor collected after its context is
-        # gone prints "Exception ignored in Executor.__del__" at exit.
-        self._closing.set()
-        self._thread.join(timeout=2.0)
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
 
 
 def integrators_config(workdir: Path, names: list[str], *, standbys: int | None = None) -> Path:
@@ -382,32 +394,20 @@ def integrators_config(workdir: Path, names: list[str], *, standbys: int | None 
     return path
 
 
-class StateReader:
+class StateReader(_Listener):
     """One participant reading the state topics of :func:`integrators_config`'s nodes
     (``/NAME/state``); when each was last heard, and what."""
 
     def __init__(self, domain_id: int, names: list[str],
                  node_name: str = 'struck_together_reader') -> None:
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id,
-                   signal_handler_options=SignalHandlerOptions.NO)
-        self.node = Node(node_name, context=self.context)
+        super().__init__(domain_id, node_name)
         self.state: dict[str, Any] = {name: {} for name in names}
         self.heard: dict[str, list[float]] = {name: [] for name in names}
         for name in names:
             self.node.create_subscription(String, f'/{name}/state',
                                           functools.partial(self._on_state, name),
                                           QoSProfile(depth=10))
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._closing = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._closing.is_set() and self.context.ok():
-            with contextlib.suppress(Exception):
-                self.executor.spin_once(timeout_sec=0.05)
+        self._start()
 
     def _on_state(self, name: str, msg: String) -> None:
         self.state[name] = json.loads(msg.data)
@@ -415,13 +415,6 @@ class StateReader:
 
     def first_heard_after(self, name: str, moment: float) -> float | None:
         return next((t for t in self.heard[name] if t > moment), None)
-
-    def close(self) -> None:
-        self._closing.set()
-        self._thread.join(timeout=2.0)
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
 
 
 class EventsFile:

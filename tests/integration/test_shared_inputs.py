@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 from rory_eval.harness.scenario import (
     EXAMPLE,
@@ -25,8 +24,8 @@ from rory_eval.harness.scenario import (
     EventTracker,
     _Observer,
     child_process,
+    integrators_config,
     joining,
-    prepare,
     scenario_env,
 )
 
@@ -37,26 +36,11 @@ NODES = ('left', 'right')
 KILL_AFTER = 2.0  # s after both have applied their first number
 
 
-def _two_integrators(workdir: Path) -> Path:
-    """The integrator twice in one config, each with its own node name and state topic."""
-    config_path = prepare(workdir, 'rory', interval=2.0, pace=None)
-    config: dict[str, Any] = yaml.safe_load(config_path.read_text())
-    (node,) = config['nodes']
-    config['nodes'] = [
-        {**node, 'name': name,
-         'command': [*node['command'], '--ros-args', '-r', f'__node:={name}',
-                     '-r', f'/integrator/state:=/{name}/state']}
-        for name in NODES
-    ]
-    config_path.write_text(yaml.safe_dump(config, sort_keys=False))
-    return config_path
-
-
 def test_two_nodes_sharing_an_input_struck_together_both_recover_exactly(
     tmp_path: Path, ros_domain: int
 ) -> None:
     workdir = tmp_path.resolve()
-    config = _two_integrators(workdir)
+    config = integrators_config(workdir, list(NODES))
     env = scenario_env(ros_domain)
     with joining(ros_domain):
         observers = {name: _Observer(ros_domain, f'/{name}/state') for name in NODES}

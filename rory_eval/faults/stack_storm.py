@@ -3,14 +3,23 @@
 One bug in a library every node loads, one OOM kill of a cgroup: the whole stack dies at once
 (issue 38). Each run here is a pair, as ``rory eval`` makes them (the same world and seed):
 
-* the **reference**: the six targets as bare processes (grid_slam, graph_slam, depth_mapper,
-  amcl, lama_local, navigator), the navigator driving to the world's goal on AMCL's pose, no
-  crash;
-* the **storm**: the same six under one ``rory supervise`` (method rory, fast replay, the default
-  standby pool, ``/e_stop`` held while any recovers, as the stack bench's rory configuration),
-  struck once the stack has settled - every node RUNNING, each with a checkpoint taken, the
-  standby pool full and ready, and not before :data:`STRIKE_AT` sim s - by one strike naming
-  them all (``all``, rory_eval/harness/stack.py): six SIGKILLs in one loop, microseconds apart.
+* the **storm**: the six targets (grid_slam, graph_slam, depth_mapper, amcl, lama_local,
+  navigator; the navigator driving to the world's goal on AMCL's pose) under one ``rory
+  supervise`` (method rory, fast replay, the default standby pool, ``/e_stop`` held while any
+  recovers, as the stack bench's rory configuration), struck once the stack has settled - every
+  node RUNNING, each with a checkpoint taken, the standby pool full and ready, and not before
+  :data:`STRIKE_AT` sim s - by one strike naming them all (``all``, rory_eval/harness/stack.py):
+  six SIGKILLs in one loop, microseconds apart;
+* then the **reference**: the same stack, the same seed, no crash, the robot stopped over the
+  same sim seconds as in the storm (``/e_stop`` held by this harness from the simulator's own
+  record of the storm's stops, :func:`stops_of`), so that the crashes are all that differs:
+  by default the six under the same ``rory supervise``, not struck (``--reference bare``: the
+  six bare, as ``rory eval``'s references are). The robot's path follows from the nodes'
+  outputs, so what changes its timing changes what the camera sees: against a bare run without
+  a stop, the six bare with a 1 s stop at 12 s gave depth_mapper a precision of 0.950; against
+  the bare run with the stop, the six under RORY with it and no crash gave 0.948 (seed 0,
+  2026-11-28; the judge's bar is 0.95). In ``rory eval`` the mapping targets follow the
+  simulator's fixed route, and a bare reference differs from a crash run only by the crash.
 
 The two mapping targets both publish ``/map``; here each is remapped onto its own
 (:data:`MAP_TOPICS`, in both runs) so that each map is judged on its own.
@@ -35,6 +44,7 @@ arguments.
 
     python -m rory_eval.faults.stack_storm --runs 3 [--world real_room] [--out DIR]
         [--standbys N]   # the pool's size; default the supervisor's (3 for six nodes)
+        [--reference rory|bare]   # the reference run (default: rory supervise, not struck)
 """
 
 from __future__ import annotations
@@ -47,6 +57,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -79,6 +90,7 @@ SETTLE_TIMEOUT = 20.0  # s the strike waits past STRIKE_AT for the stack to sett
 BOUND = 1.0  # s from the kill to the last node back (issue 38)
 METHOD = 'rory'
 STANDBY_READY = re.compile(r'standby pid (\d+) ready in')
+STOP_LINE = re.compile(r'e-stop (ENGAGED|released) at t=([0-9.]+)')
 
 
 def node_argv(name: str, world: str) -> list[str]:
@@ -139,6 +151,66 @@ def settled(store: Path, supervisor_log: Path, pool: int) -> str | None:
     if len(ready) < pool:
         missing.append(f'{len(ready)} of {pool} standbys ready')
     return '; '.join(missing) or None
+
+
+def stops_of(sim_log: Path) -> list[tuple[float, float | None]]:
+    """The robot's stops in a run as the simulator logged them: (sim s engaged, sim s released;
+    None: still stopped at the end)."""
+    text = sim_log.read_text(errors='replace') if sim_log.exists() else ''
+    stops: list[tuple[float, float | None]] = []
+    for what, at in STOP_LINE.findall(text):
+        if what == 'ENGAGED' and (not stops or stops[-1][1] is not None):
+            stops.append((float(at), None))
+        elif what == 'released' and stops and stops[-1][1] is None:
+            stops[-1] = (stops[-1][0], float(at))
+    return stops
+
+
+class StopReplay(threading.Thread):
+    """Holds ``/e_stop`` over given sim seconds of a run (its clock runs at wall pace, timed
+    from the simulator's log saying it runs), as a supervisor's safe state would. The
+    publisher is made at construction, before the run starts, so it has matched by then."""
+
+    def __init__(self, sim_log: Path, world: str, domain_id: int,
+                 stops: Sequence[tuple[float, float | None]]) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.node import Node
+        from rclpy.signals import SignalHandlerOptions
+        from std_msgs.msg import Bool
+
+        from rory_eval.harness.scenario import joining
+
+        super().__init__(daemon=True, name='stop-replay')
+        self.sim_log, self.world, self.stops = sim_log, world, list(stops)
+        self.context = Context()
+        with joining(domain_id):
+            rclpy.init(context=self.context, domain_id=domain_id,
+                       signal_handler_options=SignalHandlerOptions.NO)
+            self.node = Node('stack_storm_stop_replay', context=self.context)
+        self.publisher = self.node.create_publisher(Bool, SAFE_TOPIC, LATCHED)
+        self._message = Bool
+        self._finish = threading.Event()
+        self.errors: list[str] = []
+
+    def run(self) -> None:
+        from rory_eval.harness.simrun import wait_for_clock
+
+        if not wait_for_clock(self.sim_log, self.world, self._finish, 120.0):
+            self.errors.append('the clock never started (no stop replayed)')
+            return
+        start = time.monotonic()
+        for on, off in self.stops:
+            for at, data in ((on, True), (off, False)):
+                if at is None or self._finish.wait(max(0.0, start + at - time.monotonic())):
+                    return
+                self.publisher.publish(self._message(data=data))
+
+    def stop(self) -> None:
+        self._finish.set()
+        self.join(timeout=2.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
 
 
 # -- what a storm showed ----------------------------------------------------------------------
@@ -281,14 +353,21 @@ def describe(storm: Storm) -> str:
 # -- the runs ---------------------------------------------------------------------------------
 
 def run_pair(world: str, out: Path, *, domain_id: int, seed: int, repetition: int,
-             standbys: int | None = None) -> tuple[Storm, dict[str, Any]]:
-    """The reference, then the storm, both in ``out``; judged. Every process is reaped."""
+             standbys: int | None = None,
+             reference_method: str = METHOD) -> tuple[Storm, dict[str, Any]]:
+    """The storm, then its reference (the robot stopped as in the storm), both in ``out``;
+    judged. Every process is reaped."""
     spec = _base_spec(world, seed, repetition)
-    reference = out / 'reference'
-    _stack_run(BARE, world, reference, domain_id=domain_id, seed=seed, spec=spec)
     storm_dir = out / 'storm'
     details = _stack_run(METHOD, world, storm_dir, domain_id=domain_id, seed=seed, spec=spec,
                          instrumented=out.parent / 'instrumented', standbys=standbys)
+    details['stops'] = stops_of(storm_dir / 'run' / 'sim.log')
+    reference = out / 'reference'
+    replayed = _stack_run(reference_method, world, reference, domain_id=domain_id, seed=seed,
+                          spec=spec, instrumented=out.parent / 'instrumented',
+                          standbys=standbys, stops=details['stops'], strike=False)
+    details['reference_stops'] = stops_of(reference / 'run' / 'sim.log')
+    details['errors'] += [f'reference: {e}' for e in replayed['errors']]
     verdicts = judge_targets([(storm_dir / n, reference / n) for n in STACK])
     storm = analyse(details['kills'], details['events'], details['safe'],
                     dict(zip(STACK, verdicts, strict=True)))
@@ -303,9 +382,12 @@ def _base_spec(world: str, seed: int, repetition: int) -> dict[str, Any]:
 
 def _stack_run(method: str, world: str, out: Path, *, domain_id: int, seed: int,
                spec: dict[str, Any], instrumented: Path | None = None,
-               standbys: int | None = None) -> dict[str, Any]:
-    """One run of the six, bare or under one supervisor (struck); each target's record
-    folder (``out/NAME``: record.json, its map or model) in the runner's layout."""
+               standbys: int | None = None,
+               stops: Sequence[tuple[float, float | None]] = (),
+               strike: bool = True) -> dict[str, Any]:
+    """One run of the six, bare or under one supervisor (struck unless ``strike`` is
+    False), the robot stopped over ``stops``; each target's record folder (``out/NAME``:
+    record.json, its map or model) in the runner's layout."""
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from nav_msgs.msg import OccupancyGrid
     from sensor_msgs.msg import PointCloud2
@@ -332,12 +414,14 @@ def _stack_run(method: str, world: str, out: Path, *, domain_id: int, seed: int,
         striker = Striker(out / 'run' / 'sim.log', world, store,
                           [Strike.parse(f'{STRIKE_AT}:{ALL}', STACK)],
                           ready=lambda: settled(store, out / 'run' / 'supervisor.log', pool),
-                          ready_timeout=SETTLE_TIMEOUT)
+                          ready_timeout=SETTLE_TIMEOUT) if strike else None
         run.record(SAFE_TOPIC, Bool, qos=LATCHED)
     else:
         pool = 0
         for name in STACK:
             run.add_node(name, node_argv(name, world))
+    replay = (StopReplay(out / 'run' / 'sim.log', world, domain_id, stops) if stops
+              else None)
     world_spec = get_world(world)
     run.publish_once('/goal_pose', goal_message(world, world_spec.default_goal),
                      subscribers=2 if rory else 1)
@@ -350,15 +434,17 @@ def _stack_run(method: str, world: str, out: Path, *, domain_id: int, seed: int,
     wall_minus_mono = time.time() - time.monotonic()
     error = ''
     result: SimRunResult | None = None
-    if striker is not None:
-        striker.start()
+    for thread in (striker, replay):
+        if thread is not None:
+            thread.start()
     try:
         result = run.run()
     except SimRunError as err:
         error = f'{type(err).__name__}: {str(err).splitlines()[0]}'
     finally:
-        if striker is not None:
-            striker.stop()
+        for thread in (striker, replay):
+            if thread is not None:
+                thread.stop()
     events = store_events(store)
     kills = list(striker.done) if striker is not None else []
     struck_at = striker.struck_at[0] if striker is not None and striker.struck_at else None
@@ -376,8 +462,9 @@ def _stack_run(method: str, world: str, out: Path, *, domain_id: int, seed: int,
     safe = ([(t + wall_minus_mono, bool(m.data)) for m, t in
              zip(result.messages.get(SAFE_TOPIC, []), result.received_at.get(SAFE_TOPIC, []),
                  strict=True)] if result is not None else [])
-    errors = ([error] if error else []) + (striker.errors if striker is not None else [])
-    if rory and struck_at is None and not errors:
+    errors = (([error] if error else []) + (striker.errors if striker is not None else [])
+              + (replay.errors if replay is not None else []))
+    if rory and strike and struck_at is None and not errors:
         errors.append('the stack was never struck')
     return {'kills': kills, 'events': events, 'safe': safe, 'errors': errors, 'pool': pool,
             'struck_at': struck_at}
@@ -434,6 +521,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument('--runs', type=int, default=3, help='storms, each with its reference')
     parser.add_argument('--world', default='real_room', choices=WORLDS)
     parser.add_argument('--seed', type=int, default=0, help='simulator seed (+ run)')
+    parser.add_argument('--reference', choices=(METHOD, BARE), default=METHOD,
+                        help='the reference run: the same supervisor not struck (default), or '
+                             'the six bare')
     parser.add_argument('--standbys', type=int, default=None,
                         help="the standby pool's size (default: the supervisor's, 3 for six)")
     parser.add_argument('--domain', type=int, default=95, help='ROS domain id to use')
@@ -480,11 +570,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         folder = root / f'run{i:03d}'
         began = time.monotonic()
         storm, details = run_pair(args.world, folder, domain_id=args.domain,
-                                  seed=args.seed + i, repetition=i, standbys=args.standbys)
+                                  seed=args.seed + i, repetition=i, standbys=args.standbys,
+                                  reference_method=args.reference)
         storms.append(storm)
         record.append({'run': i, 'seed': args.seed + i, 'pool': details['pool'],
+                       'reference': args.reference,
                        'struck_at': details['struck_at'], 'kills': details['kills'],
-                       'safe_heard': details['safe'],
+                       'safe_heard': details['safe'], 'stops': details['stops'],
+                       'reference_stops': details['reference_stops'],
                        **asdict(storm), 'passed': storm.passed})
         (root / 'storm.json').write_text(json.dumps(record, indent=1))
         print(f'[{i + 1}] {describe(storm)} ({time.monotonic() - began:.0f} s'

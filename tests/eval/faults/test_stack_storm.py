@@ -193,6 +193,7 @@ def test_each_mapping_target_has_its_own_map_topic_and_the_clock_waits_for_every
     (['--world', 'moon'], 'argument --world: invalid choice'),
     (['--domain', '230'], '--domain must be 0-101'),
     (['--standbys', '0'], '--standbys must be at least 1'),
+    (['--reference', 'none'], 'argument --reference: invalid choice'),
     (['--bound', '2'], 'unrecognized arguments: --bound 2'),
 ])
 def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], said: str,
@@ -203,3 +204,14 @@ def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], said: str,
     err = capsys.readouterr().err
     assert err.count('\n') == 1 and said in err
     assert err.startswith('python -m rory_eval.faults.stack_storm: ')
+
+
+def test_the_storms_stops_are_read_from_the_simulators_log(tmp_path: Path) -> None:
+    log = tmp_path / 'sim.log'
+    assert stack_storm.stops_of(log) == []
+    log.write_text('real_room: running (seed 0)\n'
+                   '[INFO] [1.5] [mujoco_sim]: e-stop ENGAGED at t=12.04\n'
+                   '[INFO] [2.6] [mujoco_sim]: e-stop released at t=13.16\n'
+                   '[INFO] [3.0] [mujoco_sim]: e-stop released at t=13.50\n'  # no stop to end
+                   '[INFO] [4.0] [mujoco_sim]: e-stop ENGAGED at t=30.5\n')
+    assert stack_storm.stops_of(log) == [(12.04, 13.16), (30.5, None)]

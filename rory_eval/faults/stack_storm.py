@@ -238,6 +238,7 @@ class Storm:
     safe_state: list[str]  # what is wrong with it
     verdicts: dict[str, dict[str, Any]]  # per target: correct, measures, reason
     problems: list[str] = field(default_factory=list)
+    kill_spread_ms: float | None = None  # the first kill to the last
 
     @property
     def passed(self) -> bool:
@@ -260,6 +261,9 @@ def analyse(kills: Sequence[tuple[float, str, int]], events: Sequence[dict[str, 
     if not kills:
         return Storm([], None, None, None, ['no strike'], dict(verdicts), problems)
     first_kill = min(t for t, _, _ in kills)
+    spread = (max(t for t, _, _ in kills) - first_kill) * 1000.0
+    if spread >= 1.0:
+        problems.append(f'struck over {spread:.1f} ms, not within one millisecond')
     after = [e for e in events if float(e.get('t', 0.0)) >= first_kill]
     warm = {(e['node'], e.get('incarnation')): e.get('warm') for e in events
             if e.get('kind') == 'spawn'}
@@ -294,7 +298,7 @@ def analyse(kills: Sequence[tuple[float, str, int]], events: Sequence[dict[str, 
             how = 'not judged' if verdict.get('correct') is None else 'wrong'
             problems.append(f'{node}: {how} ({verdict.get("reason", "")})')
     return Storm(recoveries, last_back, hold_after, release_after, safe_problems,
-                 dict(verdicts), problems)
+                 dict(verdicts), problems, round(spread, 3))
 
 
 def _safe_state(first_kill: float, after: Sequence[dict[str, Any]],
@@ -345,7 +349,9 @@ def describe(storm: Storm) -> str:
               if storm.hold_after_ms is not None and storm.release_after_ms is not None else '')
     last = 'none' if storm.last_back_ms is None else f'{storm.last_back_ms:.0f} ms'
     head = 'PASS' if storm.passed else 'FAIL: ' + '; '.join(storm.problems)
-    return (f'{head} | last back {last} after the kill (bound {BOUND * 1000:.0f}) | ms '
+    spread = ('' if storm.kill_spread_ms is None
+              else f' (six kills over {storm.kill_spread_ms:.2f} ms)')
+    return (f'{head} | last back {last} after the kill{spread} (bound {BOUND * 1000:.0f}) | ms '
             f'recovered (w warm, c cold)/back after the kill: {nodes} | {SAFE_TOPIC} {safe}'
             f'{"; " + timing if timing else ""} | judges {correct}/{len(STACK)} correct')
 

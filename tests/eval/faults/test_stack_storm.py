@@ -68,7 +68,9 @@ def test_six_back_correct_the_stop_held_to_the_last_and_in_time_pass() -> None:
     assert storm.last_back_ms == 420.0
     assert storm.hold_after_ms == 4.0 and storm.release_after_ms == 1.0
     line = describe(storm)
-    assert line.startswith('PASS | last back 420 ms after the kill (bound 1000)')
+    assert storm.kill_spread_ms == pytest.approx(0.05)
+    assert line.startswith('PASS | last back 420 ms after the kill (six kills over 0.05 ms) '
+                           '(bound 1000)')
     assert 'amcl 59w/60' in line and 'lama_local 419c/420' in line
     assert 'judges 6/6 correct' in line
 
@@ -142,6 +144,13 @@ def test_a_wrong_or_unjudged_target_fails() -> None:
         'amcl: not judged (the reference run did not reach the goal)',
         'navigator: not judged']
     assert 'judges 3/6 correct' in describe(storm)
+
+
+def test_kills_more_than_a_millisecond_apart_are_not_the_same_moment() -> None:
+    spread = [(t + (0.0015 if node == 'navigator' else 0.0), node, pid)
+              for t, node, pid in kills()]
+    storm = analyse(spread, events(), safe(), correct())
+    assert storm.problems == ['struck over 1.5 ms, not within one millisecond']
 
 
 def test_a_strike_that_missed_a_node_fails() -> None:

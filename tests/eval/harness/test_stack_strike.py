@@ -4,11 +4,13 @@ process is started."""
 
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 
 import pytest
 
-from rory_eval.harness.stack import NODES, Strike, Striker
+from rory_eval.harness.stack import NODES, Strike, Striker, first_in_line
 
 SIX = ('grid_slam', 'graph_slam', 'depth_mapper', 'amcl', 'lama_local', 'navigator')
 
@@ -49,3 +51,11 @@ def test_a_stack_that_never_settles_is_not_struck(tmp_path: Path) -> None:
     assert not striker._settled(striker.strikes[0])
     assert striker.errors == ['not settled 0.05 s after the strike at 12.0 s: amcl has no '
                               'checkpoint']
+
+
+def test_the_kills_go_first_in_line_and_everything_is_as_before_after() -> None:
+    interval, policy = sys.getswitchinterval(), os.sched_getscheduler(0)
+    with first_in_line():
+        assert sys.getswitchinterval() == 1.0
+        assert os.sched_getscheduler(0) in (os.SCHED_FIFO, policy)  # where the system lets it
+    assert sys.getswitchinterval() == interval and os.sched_getscheduler(0) == policy

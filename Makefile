@@ -90,17 +90,18 @@ discovery: $(STAMP)
 # The six-target storm: the six targets under one supervisor, all SIGKILLed in one loop; each
 # back and correct (rory eval's judges, against the same stack not struck, stopped as long),
 # /e_stop held until the last is released, the last back within 1 s (~3 min; docs/faults.md,
-# "The six-target storm").
+# "The six-target storm"). Last: its 1 s bound is not met yet (issue 38), and make stops at
+# the first part that fails.
 faults: $(STAMP)
 	$(PY) -m rory_eval.faults.fault_campaign --runs 8
 	$(PY) -m rory_eval.faults.storm_campaign --runs 40
 	$(PY) -m rory_eval.faults.common_mode_campaign --runs 5
 	$(PY) -m rory_eval.faults.storm_bound_campaign --storms 20 --nodes 3
-	$(PY) -m rory_eval.faults.stack_storm --runs 2
 	$(PY) -m rory_eval.faults.corpus_campaign --kills 3
 	$(PY) -m rory_eval.faults.target_faults
 	$(PY) -m rory_eval.faults.load_campaign --load 2
 	$(PY) -m rory_eval.faults.idle_watch --minutes 3
+	$(PY) -m rory_eval.faults.stack_storm --runs 2
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache demo-out eval-out

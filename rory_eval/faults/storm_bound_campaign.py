@@ -54,6 +54,7 @@ from rory_eval.harness.process_usage import role_of, tree_pids
 from rory_eval.harness.scenario import (
     EXAMPLE,
     EventsFile,
+    LineFollower,
     StateReader,
     child_process,
     integrators_config,
@@ -375,18 +376,10 @@ class _LogFollower:
     """Whole lines appended to the supervisor's log since the last poll."""
 
     def __init__(self, path: Path) -> None:
-        self.path = path
-        self._offset = 0
+        self._lines = LineFollower(path)
 
     def poll(self) -> list[str]:
-        if not self.path.exists():
-            return []
-        with self.path.open('rb') as f:
-            f.seek(self._offset)
-            data = f.read()
-        end = data.rfind(b'\n') + 1
-        self._offset += end
-        return data[:end].decode(errors='replace').splitlines()
+        return [line.decode(errors='replace') for line in self._lines.poll()]
 
 
 @dataclasses.dataclass

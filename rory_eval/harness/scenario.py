@@ -417,6 +417,26 @@ class StateReader(_Listener):
         return next((t for t in self.heard[name] if t > moment), None)
 
 
+class LineFollower:
+    """Follows a file another process appends to: the whole lines added since the last poll
+    (a line still being written waits for its newline)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._offset = 0
+
+    def poll(self) -> list[bytes]:
+        """The whole lines appended since the last poll, without their newlines."""
+        if not self.path.exists():
+            return []
+        with self.path.open('rb') as f:
+            f.seek(self._offset)
+            data = f.read()
+        end = data.rfind(b'\n') + 1
+        self._offset += end
+        return data[:end].splitlines()
+
+
 class EventsFile:
     """Follows a JSON-lines file another process appends to (the supervisor's events.jsonl,
     an observer's output); whole lines only."""
@@ -425,18 +445,11 @@ class EventsFile:
         self.path = path
         self.events: list[dict[str, Any]] = []
         self.changed = time.monotonic()  # when the last record came
-        self._offset = 0
+        self._lines = LineFollower(path)
 
     def poll(self) -> list[dict[str, Any]]:
         """The records appended since the last poll (also kept in :attr:`events`)."""
-        if not self.path.exists():
-            return []
-        with self.path.open('rb') as f:
-            f.seek(self._offset)
-            data = f.read()
-        end = data.rfind(b'\n') + 1
-        self._offset += end
-        new = [json.loads(line) for line in data[:end].splitlines() if line.strip()]
+        new = [json.loads(line) for line in self._lines.poll() if line.strip()]
         if new:
             self.events.extend(new)
             self.changed = time.monotonic()

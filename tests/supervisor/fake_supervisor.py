@@ -32,9 +32,10 @@ from rory_runtime.protocol import (
     SyncedStatus,
 )
 from rory_runtime.supervisor.config import SupervisorConfig, load_config
+from rory_runtime.supervisor.loop_events import ChildExited, GateCall, Released
+from rory_runtime.supervisor.managed_node import ManagedNode
 from rory_runtime.supervisor.ports import RingPort
 from rory_runtime.supervisor.states import NodeState
-from rory_runtime.supervisor.supervisor import ChildExited, GateCall, ManagedNode, Released
 
 
 class FakeClock:

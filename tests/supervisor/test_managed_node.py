@@ -20,10 +20,10 @@ from rory_runtime import protocol
 from rory_runtime.freshness import Verdict
 from rory_runtime.log import LogEntry
 from rory_runtime.protocol import OpenedStatus, RestoredCheckpoint, SwitchedStatus
+from rory_runtime.supervisor.managed_node import STANDBY_DELAY
 from rory_runtime.supervisor.ports import Capture
 from rory_runtime.supervisor.recovery import RecoveryLog
 from rory_runtime.supervisor.states import NodeState
-from rory_runtime.supervisor.supervisor import STANDBY_DELAY
 from rory_runtime.supervisor.watchdog import HANG_DUMP_GRACE, HELLO_TIMEOUT, STALL_SUSPECT
 
 S = NodeState

@@ -62,7 +62,7 @@ from rory_eval.harness.scenario import (
 from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.supervisor.config import DEFAULT_MAX_STANDBYS
 
-FIXED = ('supervisor', 'zygote', 'standby')
+FIXED = ('supervisor', 'zygote', 'standby', 'spare')
 """RORY's processes whatever the nodes: the figure of issue 36."""
 ROLES = (*FIXED, 'node')
 THREAD_ROLES = ('supervisor', 'standby')
@@ -269,7 +269,9 @@ def run_once(workdir: Path, domain: int, nodes: int, seconds: float,
         kinds[ev['kind']] = kinds.get(ev['kind'], 0) + 1
     roles = usage.to_json()
     counts = {role: roles.get(role, {}).get('processes', 0) for role in ROLES}
-    if counts != {'supervisor': 1, 'zygote': 1, 'standby': pool, 'node': nodes}:
+    spares = max(0, nodes - pool)  # one for each node beyond the pool (supervisor/standby.py)
+    if counts != {'supervisor': 1, 'zygote': 1, 'standby': pool, 'spare': spares,
+                  'node': nodes}:
         raise RuntimeError(f'not the processes of a supervisor at rest: {counts}')
     if kinds.get('spawn') or kinds.get('exit'):
         raise RuntimeError(f'a node started or ended in the window: {kinds}')

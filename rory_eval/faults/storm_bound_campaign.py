@@ -103,7 +103,7 @@ class Reading:
     fds: int
     threads: int
     nodes: int
-    standbys: int
+    standbys: int  # waiting standbys and spare forks
     zygotes: int
     others: int  # live processes of the tree that are neither a node, a standby nor the zygote
     zombies: int
@@ -203,7 +203,8 @@ def read_once(sup: int, storm: int, node_pids: set[int] | None = None,
         zygote_rss = _kb_fields(proc / str(zygotes[0]) / 'status', ('VmRSS',)).get('VmRSS', 0.0)
         zygote_fds = sum(fd_kinds(zygotes[0], proc).values())
     return Reading(storm, memory['Pss'], memory['Rss'], sum(kinds.values()), threads,
-                   roles['node'], roles['standby'], roles['zygote'], roles['other'],
+                   roles['node'], roles['standby'] + roles['spare'], roles['zygote'],
+                   roles['other'],
                    roles['zombie'],
                    zygote_rss, zygote_fds, fd_kinds=kinds, members=tree)
 

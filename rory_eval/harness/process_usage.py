@@ -11,7 +11,8 @@ counts it whole in each).
 
 Roles come from the command line: ``rory_runtime.cli supervise`` is the supervisor; its forks
 name themselves (rory_runtime/supervisor/zygote.py): ``rory-zygote`` is the fork server,
-``rory-standby`` a waiting standby, and a standby that became a node, like a node forked cold,
+``rory-standby`` a waiting standby, ``rory-spare`` a waiting spare fork (made without
+rclpy.init), and a standby or spare that became a node, like a node forked cold,
 shows the node's command: anything else is the node. CPU that the tree's reaped children used
 (a crashed node) is reported as ``reaped``.
 """
@@ -27,17 +28,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rory_runtime.supervisor.zygote import STANDBY_TITLE, ZYGOTE_TITLE
+from rory_runtime.supervisor.zygote import SPARE_TITLE, STANDBY_TITLE, ZYGOTE_TITLE
 
-ROLES = ('node', 'supervisor', 'zygote', 'standby', 'reaped')
+ROLES = ('node', 'supervisor', 'zygote', 'standby', 'spare', 'reaped')
 """Every role a reading can be given, in report order."""
 
 _CLK_TCK = float(os.sysconf('SC_CLK_TCK'))
 
 
 def role_of(cmdline: Sequence[str]) -> str:
-    """'supervisor', 'zygote', 'standby' or 'node', from a process's command line (a fork of
-    the zygote names itself: rory_runtime/supervisor/zygote.py)."""
+    """'supervisor', 'zygote', 'standby', 'spare' or 'node', from a process's command line (a
+    fork of the zygote names itself: rory_runtime/supervisor/zygote.py)."""
     # A process whose title setproctitle touched shows its command line as one string.
     words = ' '.join(cmdline).split()
     first = words[0] if words else ''
@@ -45,6 +46,8 @@ def role_of(cmdline: Sequence[str]) -> str:
         return 'zygote'
     if first == STANDBY_TITLE:
         return 'standby'
+    if first == SPARE_TITLE:
+        return 'spare'
     if 'rory_runtime.cli' in words and 'supervise' in words:
         return 'supervisor'
     return 'node'

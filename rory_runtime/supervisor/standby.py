@@ -144,18 +144,30 @@ CommandKey = tuple[tuple[str, ...], str]
 
 @dataclass
 class StandbyPool:
-    """The standbys of one init signature, for every command that can become one of them."""
+    """The standbys of one init signature, for every command that can become one of them, and
+    its spare forks: one for each such command beyond the pool's size, so that when every one
+    of them is struck at once, those the standbys do not cover start from a fork already made
+    rather than from a round trip to the zygote on the supervisor's main loop."""
 
     waiting: list[Standby] = field(default_factory=list)
+    spares: list[Standby] = field(default_factory=list)
     wanted_by: set[CommandKey] = field(default_factory=set)
-    # When a standby was last taken (activated or found dead): the refill waits
-    # REFILL_DELAY after it, so that new standbys do not compete with recoveries for the CPU.
+    # When a standby or spare was last taken (activated or found dead): the refill waits
+    # REFILL_DELAY after it, so that new ones do not compete with recoveries for the CPU.
     taken_at: float | None = None
 
     def best(self) -> Standby | None:
         """The one to hand out next: the longest ready, else the longest starting."""
-        ready = [s for s in self.waiting if s.ready_at is not None]
-        return min(ready or self.waiting, key=lambda s: s.started, default=None)
+        return _longest_ready(self.waiting)
+
+    def spares_wanted(self, pool_size: int) -> int:
+        """Spare forks to keep: the commands that want this pool, beyond its standbys."""
+        return max(0, len(self.wanted_by) - pool_size)
+
+
+def _longest_ready(held: Sequence[Standby]) -> Standby | None:
+    ready = [s for s in held if s.ready_at is not None]
+    return min(ready or held, key=lambda s: s.started, default=None)
 
 
 REFILL_DELAY = 1.0
@@ -208,11 +220,12 @@ class ForkLauncher:
 
     def prepare(self, argv: Sequence[str], env: Mapping[str, str],
                 cwd: Path) -> list[int] | None:
-        """Have the pool of standbys that ``spawn(argv, ...)`` would start from full: the pool
-        its init signature shares, with what is missing forked now (not within
-        :data:`REFILL_DELAY` of a standby being taken from it). The pids started (none when
-        the pool is full or the refill must wait), or None when this command cannot have a
-        standby. Called from one thread (the supervisor's main loop)."""
+        """Have the pool of standbys that ``spawn(argv, ...)`` would start from full, with its
+        spare forks: the pool its init signature shares, with what is missing forked now (not
+        within :data:`REFILL_DELAY` of one being taken from it). The pids of the standbys
+        started (none when the pool is full or the refill must wait; spares are not named),
+        or None when this command cannot have a standby. Called from one thread (the
+        supervisor's main loop)."""
         signature, _why = self._forkable(argv, env)
         if signature is None or self.zygote is None:
             return None
@@ -220,16 +233,18 @@ class ForkLauncher:
         with self._lock:
             pool = self._pools.setdefault(signature, StandbyPool())
             pool.wanted_by.add(_key(argv, cwd))
-            dead = [s for s in pool.waiting if s.child.poll() is not None]
+            dead = [s for s in (*pool.waiting, *pool.spares) if s.child.poll() is not None]
             for standby in dead:
-                pool.waiting.remove(standby)
+                (pool.waiting if standby in pool.waiting else pool.spares).remove(standby)
             if dead:
                 pool.taken_at = now
             waits = pool.taken_at is not None and now - pool.taken_at < REFILL_DELAY
             missing = 0 if waits else self.pool_size - len(pool.waiting)
+            spares_missing = 0 if waits else pool.spares_wanted(self.pool_size) - len(pool.spares)
         for standby in dead:
-            _logger.warning('%s standby pid %d had ended (%s); another takes its place',
-                            LOG_PREFIX, standby.pid, standby.child.poll())
+            _logger.warning('%s %s pid %d had ended (%s); another takes its place', LOG_PREFIX,
+                            'standby' if standby.child.warm else 'spare fork', standby.pid,
+                            standby.child.poll())
             standby.drop()
         started = []
         for _ in range(missing):
@@ -238,10 +253,27 @@ class ForkLauncher:
                 pool = self._pools.setdefault(signature, StandbyPool())
                 pool.waiting.append(standby)
             started.append(standby.pid)
+        for _ in range(spares_missing):
+            spare = self._fork_standby(signature, argv, env, cwd, spare=True)
+            with self._lock:
+                pool = self._pools.setdefault(signature, StandbyPool())
+                pool.spares.append(spare)
         return started
 
+    def full(self, argv: Sequence[str], cwd: Path) -> bool:
+        """The pool this command starts from holds its standbys and spares, all alive: what
+        :meth:`prepare` would find (without its environment and init signature to compute)."""
+        with self._lock:
+            for pool in self._pools.values():
+                if _key(argv, cwd) in pool.wanted_by:
+                    held = (*pool.waiting, *pool.spares)
+                    return (len(pool.waiting) >= self.pool_size
+                            and len(pool.spares) >= pool.spares_wanted(self.pool_size)
+                            and all(s.child.poll() is None for s in held))
+        return False
+
     def _fork_standby(self, signature: Hashable, argv: Sequence[str], env: Mapping[str, str],
-                      cwd: Path) -> Standby:
+                      cwd: Path, *, spare: bool = False) -> Standby:
         assert self.zygote is not None
         program = forkable(argv)
         assert program is not None
@@ -250,11 +282,11 @@ class ForkLauncher:
         streams = self.output.open(STANDBY_LABEL) if self.output is not None else None
         try:
             forked = self.zygote.fork_standby(init_args, env, cwd,
-                                              streams.child_fds if streams else ())
+                                              streams.child_fds if streams else (), spare=spare)
         finally:
             if streams is not None:
                 streams.close_child_ends()
-        standby = Standby(PidChild(forked.pid, warm=True), forked.control, self._clock(),
+        standby = Standby(PidChild(forked.pid, warm=not spare), forked.control, self._clock(),
                           streams=streams)
         self._watch_ready(standby, forked.ready)
         return standby
@@ -267,13 +299,15 @@ class ForkLauncher:
                 got = b''
             finally:
                 os.close(ready)
+            what = 'standby' if standby.child.warm else 'spare fork'
             if got:
                 standby.ready_at = self._clock()
-                _logger.info('%s standby pid %d ready in %.0f ms', LOG_PREFIX, standby.pid,
-                             (standby.ready_at - standby.started) * 1000)
+                _logger.log(logging.INFO if standby.child.warm else logging.DEBUG,
+                            '%s %s pid %d ready in %.0f ms', LOG_PREFIX, what, standby.pid,
+                            (standby.ready_at - standby.started) * 1000)
             elif not standby.done.is_set():
-                _logger.warning('%s standby pid %d ended before it was ready (%s)', LOG_PREFIX,
-                                standby.pid, standby.child.poll())
+                _logger.warning('%s %s pid %d ended before it was ready (%s)', LOG_PREFIX,
+                                what, standby.pid, standby.child.poll())
 
         threading.Thread(target=watch, name='rory-standby', daemon=True).start()
 
@@ -293,14 +327,27 @@ class ForkLauncher:
                     return list(pool.waiting)
         return []
 
+    def spares(self, argv: Sequence[str], cwd: Path) -> list[Standby]:
+        """Every spare fork this command could start from."""
+        with self._lock:
+            for pool in self._pools.values():
+                if _key(argv, cwd) in pool.wanted_by:
+                    return list(pool.spares)
+        return []
+
     def _take(self, signature: Hashable) -> Standby | None:
+        """A standby of the pool, else one of its spare forks, taken out of it."""
         with self._lock:
             pool = self._pools.get(signature)
-            standby = None if pool is None else pool.best()
-            if pool is not None and standby is not None:
-                pool.waiting.remove(standby)
-                pool.taken_at = self._clock()
-            return standby
+            if pool is None:
+                return None
+            for held in (pool.waiting, pool.spares):
+                standby = _longest_ready(held)
+                if standby is not None:
+                    held.remove(standby)
+                    pool.taken_at = self._clock()
+                    return standby
+            return None
 
     def spawn(self, argv: Sequence[str], env: Mapping[str, str], cwd: Path,
               label: str = '') -> Child:
@@ -314,9 +361,10 @@ class ForkLauncher:
                else 'no standby waiting')
         while (standby := self._take(signature)) is not None:
             standby.done.set()
+            what = 'standby' if standby.child.warm else 'spare fork'
             code = standby.child.poll()
             if code is not None:
-                why = f'the standby had exited ({code})'
+                why = f'the {what} had exited ({code})'
             else:
                 if standby.streams is not None:
                     standby.streams.relabel(label or STANDBY_LABEL)
@@ -324,8 +372,10 @@ class ForkLauncher:
                     os.write(standby.control, activation_line(argv, env, cwd))
                     os.close(standby.control)
                 except OSError as err:
-                    why = f'the standby could not be activated ({err})'
+                    why = f'the {what} could not be activated ({err})'
                 else:
+                    if not standby.child.warm:
+                        standby.child.why_cold = f'{why}; from a spare fork'
                     return standby.child
             standby.drop()
         streams = self.output.open(label) if self.output is not None else None
@@ -348,13 +398,18 @@ class ForkLauncher:
                 streams.close_child_ends()
 
     def discard(self, argv: Sequence[str], cwd: Path) -> None:
-        """This command no longer wants a standby; a pool goes once no command wants it."""
+        """This command no longer wants a standby; a pool goes once no command wants it, and
+        keeps a spare fork only for each command beyond its standbys."""
         drop: list[Standby] = []
         with self._lock:
             for signature, pool in list(self._pools.items()):
                 pool.wanted_by.discard(_key(argv, cwd))
                 if not pool.wanted_by:
-                    drop.extend(self._pools.pop(signature).waiting)
+                    gone = self._pools.pop(signature)
+                    drop.extend((*gone.waiting, *gone.spares))
+                    continue
+                while len(pool.spares) > pool.spares_wanted(self.pool_size):
+                    drop.append(pool.spares.pop())
         for standby in drop:
             standby.drop()
 
@@ -363,7 +418,7 @@ class ForkLauncher:
         with self._lock:
             pools, self._pools = list(self._pools.values()), {}
         for pool in pools:
-            for standby in pool.waiting:
+            for standby in (*pool.waiting, *pool.spares):
                 standby.drop()
         if self.zygote is not None:
             self.zygote.close()

@@ -16,7 +16,12 @@ and never starts a thread; it waits on a socket and forks on request:
 * a **standby**: it calls ``rclpy.init`` and makes a hidden placeholder node, so that its
   participant exists and is discovered before any node crashes, then waits to be told which
   node to become (environment, folder, program). One standby serves every node whose
-  ``rclpy.init`` would be the same (:func:`init_signature`).
+  ``rclpy.init`` would be the same (:func:`init_signature`);
+* a **spare**: a fork held ready without ``rclpy.init``, told at activation which node to
+  become, which it then starts as a node fork would (cold). It costs a few private pages
+  (docs/performance.md, "Spare forks"), and it takes the zygote's round trip, which a loaded
+  machine stretches to a hundred milliseconds, off the supervisor's main loop when more nodes
+  are struck together than the pool has standbys.
 
 Each child is forked twice (the zygote's child forks it and exits), so it is re-parented to
 the supervisor, which is a child subreaper while it asks for a fork: the supervisor waits for
@@ -74,7 +79,9 @@ _logger = logging.getLogger('rory.supervisor')
 
 ZYGOTE_TITLE = 'rory-zygote'
 STANDBY_TITLE = 'rory-standby'
-"""Command lines (``ps``) of the fork server and of a waiting standby; a node shows its own."""
+SPARE_TITLE = 'rory-spare'
+"""Command lines (``ps``) of the fork server, of a waiting standby and of a waiting spare; a
+node shows its own."""
 
 _PR_SET_PDEATHSIG = 1
 _PR_SET_CHILD_SUBREAPER = 36
@@ -229,11 +236,12 @@ def _handle(request: dict[str, Any], supervisor: int, sock: socket.socket,
         pid = _fork_child(supervisor, lambda: _become_node(request), close=(sock.fileno(),),
                           output=output)
         return {'pid': pid}, []
-    if kind == 'standby':
+    if kind in ('standby', 'spare'):
+        become = _become_standby if kind == 'standby' else _become_spare
         control_r, control_w = os.pipe()
         ready_r, ready_w = os.pipe()
         try:
-            pid = _fork_child(supervisor, lambda: _become_standby(request, control_r, ready_w),
+            pid = _fork_child(supervisor, lambda: become(request, control_r, ready_w),
                               close=(sock.fileno(), control_w, ready_r), output=output)
         except BaseException:
             for fd in (control_w, ready_r):
@@ -437,6 +445,21 @@ def _become_standby(request: dict[str, Any], control: int, ready: int) -> int:
     return 0
 
 
+def _become_spare(request: dict[str, Any], control: int, ready: int) -> int:
+    """Wait, without rclpy; become the node named at activation, as a node fork would."""
+    title(SPARE_TITLE)
+    os.write(ready, b'R')
+    os.close(ready)
+    try:
+        activation = read_activation(control)
+    finally:
+        os.close(control)
+    if activation is None:  # dropped before use
+        return 0
+    return _become_node({'argv': list(activation.argv), 'env': activation.env,
+                         'cwd': activation.cwd})
+
+
 # -- the supervisor's side ----------------------------------------------------------------------
 
 
@@ -531,10 +554,13 @@ class Zygote:
         return int(reply['pid'])
 
     def fork_standby(self, init_args: Sequence[str], env: Mapping[str, str],
-                     cwd: Path, output: Sequence[int] = ()) -> ForkedStandby:
-        """Start a standby that calls ``rclpy.init(args=init_args)`` under ``env``."""
-        reply, fds = self._ask({'kind': 'standby', 'init_args': list(init_args),
-                                'env': dict(env), 'cwd': str(cwd)}, output)
+                     cwd: Path, output: Sequence[int] = (), *,
+                     spare: bool = False) -> ForkedStandby:
+        """Start a standby that calls ``rclpy.init(args=init_args)`` under ``env``; with
+        ``spare``, one that waits without it and starts as a node fork once activated."""
+        reply, fds = self._ask({'kind': 'spare' if spare else 'standby',
+                                'init_args': list(init_args), 'env': dict(env),
+                                'cwd': str(cwd)}, output)
         if len(fds) != 2:
             for fd in fds:
                 os.close(fd)

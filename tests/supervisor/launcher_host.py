@@ -41,6 +41,8 @@ def main() -> int:
             # pid: the standby this command would start from next
             reply = {'started': started, 'pid': None if after is None else after.pid,
                      'pool': [s.pid for s in launcher.standbys(request['argv'],
+                                                              Path(request['cwd']))],
+                     'spares': [s.pid for s in launcher.spares(request['argv'],
                                                               Path(request['cwd']))]}
         elif op == 'spawn':
             child = launcher.spawn(request['argv'], request['env'], Path(request['cwd']),

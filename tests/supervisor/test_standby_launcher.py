@@ -199,6 +199,34 @@ def test_one_standby_serves_every_node_with_the_same_init(
     assert launcher.ask('standby', argv=first, cwd=str(tmp_path))['pid'] is None
 
 
+def test_a_node_beyond_the_pool_starts_from_a_spare_fork(
+    tmp_path: Path, ros_domain: int, launcher: Host
+) -> None:
+    # A pool of one, two nodes: the second struck at the same time starts from a fork made
+    # before the crash, with no rclpy.init until it runs, as a cold fork would.
+    script = tmp_path / 'node.py'
+    script.write_text(PROGRAM)
+    first = [sys.executable, str(script), str(tmp_path / 'a.json'), '0']
+    second = [sys.executable, str(script), str(tmp_path / 'b.json'), '4']
+    launcher.ask('prepare', argv=first, env=_env(ros_domain, 2), cwd=str(tmp_path))
+    pool = launcher.ask('prepare', argv=second, env=_env(ros_domain, 2), cwd=str(tmp_path))
+    assert len(pool['pool']) == 1 and len(pool['spares']) == 1
+    _wait_ready(launcher, first, tmp_path)
+    warm = launcher.ask('spawn', argv=first, env=_env(ros_domain, 3), cwd=str(tmp_path))
+    cold = launcher.ask('spawn', argv=second, env=_env(ros_domain, 8), cwd=str(tmp_path))
+    assert warm['warm'] is True and warm['pid'] == pool['pool'][0]
+    assert cold['warm'] is False and cold['pid'] == pool['spares'][0]
+    assert cold['why_cold'] == 'no standby waiting (the pool of 1 is in use); from a spare fork'
+    assert launcher.ask('wait', pid=warm['pid'], timeout=30)['code'] == 0
+    assert launcher.ask('wait', pid=cold['pid'], timeout=60)['code'] == 4
+    seen = json.loads((tmp_path / 'b.json').read_text())
+    assert seen['name'] == '__main__' and seen['incarnation'] == '8'
+    assert seen['argv'] == [str(script), str(tmp_path / 'b.json'), '4']
+    assert seen['ppid'] == cold['host'] and seen['sid'] == seen['pid']
+    assert seen['cmdline'].endswith(f'{script} {tmp_path / "b.json"} 4')
+    assert 'real_node' in seen['nodes']
+
+
 def test_a_dead_standby_is_not_used(tmp_path: Path, ros_domain: int, launcher: Host) -> None:
     script = tmp_path / 'node.py'
     script.write_text(PROGRAM)

@@ -18,11 +18,13 @@ from typing import Any, cast
 
 import pytest
 
+from rory_runtime.supervisor.process import Child
 from rory_runtime.supervisor.standby import REFILL_DELAY, ForkLauncher, PidChild
 from rory_runtime.supervisor.zygote import ForkedStandby, Zygote
 
 ARGV_A = [sys.executable, 'a.py']
 ARGV_B = [sys.executable, 'b.py']
+FOUR = [[sys.executable, f'{name}.py'] for name in 'abcd']
 
 
 class FakeClock:
@@ -42,7 +44,8 @@ class FakeZygote:
         self.procs: list[subprocess.Popen[bytes]] = []
         self.ready_ends: dict[int, int] = {}  # standby pid -> write end of its ready pipe
         self.controls: dict[int, int] = {}  # standby pid -> read end of its control pipe
-        self.nodes: list[int] = []
+        self.nodes: list[int] = []  # cold forks: a round trip on the supervisor's main loop
+        self.spares: list[int] = []
 
     def _start(self) -> int:
         proc = subprocess.Popen(['sleep', '60'])
@@ -50,8 +53,10 @@ class FakeZygote:
         return proc.pid
 
     def fork_standby(self, init_args: Sequence[str], env: Mapping[str, str], cwd: Path,
-                     output: Sequence[int] = ()) -> ForkedStandby:
+                     output: Sequence[int] = (), *, spare: bool = False) -> ForkedStandby:
         pid = self._start()
+        if spare:
+            self.spares.append(pid)
         control_r, control_w = os.pipe()
         ready_r, ready_w = os.pipe()
         self.ready_ends[pid] = ready_w
@@ -226,5 +231,131 @@ def test_discard_keeps_the_pool_while_another_command_wants_it(zygote: FakeZygot
     assert len(launcher.standbys(ARGV_B, Path('/'))) == 2
     launcher.discard(ARGV_B, Path('/'))
     assert launcher.standbys(ARGV_B, Path('/')) == []
+    assert zygote.alive() == []
+    launcher.close()
+
+
+def _prepare_all(launcher: ForkLauncher, commands: Sequence[Sequence[str]]) -> None:
+    for argv in commands:
+        launcher.prepare(argv, _env(), Path('/'))
+
+
+def test_each_command_beyond_the_pool_has_a_spare_fork(zygote: FakeZygote) -> None:
+    launcher = _launcher(zygote, FakeClock(), 2)
+    _prepare_all(launcher, FOUR)
+    assert len(launcher.standbys(FOUR[0], Path('/'))) == 2
+    assert sorted(s.pid for s in launcher.spares(FOUR[0], Path('/'))) == sorted(zygote.spares)
+    assert len(zygote.spares) == 2
+    assert all(not s.child.warm for s in launcher.spares(FOUR[3], Path('/')))
+    assert launcher.full(FOUR[1], Path('/'))
+    _prepare_all(launcher, FOUR)  # full: nothing more
+    assert len(zygote.procs) == 4
+    launcher.close()
+    assert zygote.alive() == []
+
+
+def test_no_spare_while_the_pool_covers_every_command(zygote: FakeZygote) -> None:
+    launcher = _launcher(zygote, FakeClock(), 3)
+    _prepare_all(launcher, FOUR[:3])
+    assert launcher.spares(FOUR[0], Path('/')) == [] and zygote.spares == []
+    launcher.close()
+
+
+def test_four_struck_together_two_warm_two_from_spares_none_forked_on_the_loop(
+    zygote: FakeZygote
+) -> None:
+    launcher = _launcher(zygote, FakeClock(), 2)
+    _prepare_all(launcher, FOUR)
+    children = [cast(PidChild, launcher.spawn(argv, _env(), Path('/'), label=str(i)))
+                for i, argv in enumerate(FOUR)]
+    assert [c.warm for c in children] == [True, True, False, False]
+    assert sorted(c.pid for c in children[2:]) == sorted(zygote.spares)
+    assert zygote.nodes == []  # no round trip to the zygote while the crashes are taken
+    assert all('from a spare fork' in c.why_cold for c in children[2:])
+    assert all('the pool of 2 is in use' in c.why_cold for c in children[2:])
+    # each got its own node's activation line
+    for child, argv in zip(children, FOUR, strict=True):
+        assert argv[1].encode() in zygote.activation(child.pid)
+    fifth = cast(PidChild, launcher.spawn(FOUR[0], _env(), Path('/')))
+    assert not fifth.warm and fifth.pid in zygote.nodes  # none left: a cold fork
+    launcher.close()
+    for child in [*children, fifth]:
+        child.send_signal(9)
+        child.wait(timeout=5)
+    assert zygote.alive() == []
+
+
+def test_spares_are_refilled_after_the_refill_delay(zygote: FakeZygote) -> None:
+    clock = FakeClock()
+    launcher = _launcher(zygote, clock, 2)
+    _prepare_all(launcher, FOUR)
+    taken = [launcher.spawn(argv, _env(), Path('/')) for argv in FOUR]
+    assert not launcher.full(FOUR[0], Path('/'))
+    clock.now += REFILL_DELAY / 2
+    _prepare_all(launcher, FOUR)
+    assert launcher.spares(FOUR[0], Path('/')) == []
+    clock.now += REFILL_DELAY / 2
+    _prepare_all(launcher, FOUR)
+    assert len(launcher.spares(FOUR[0], Path('/'))) == 2
+    assert len(launcher.standbys(FOUR[0], Path('/'))) == 2
+    launcher.close()
+    for child in taken:
+        child.send_signal(9)
+        child.wait(timeout=5)
+    assert zygote.alive() == []
+
+
+def test_a_dead_spare_is_replaced_and_reaped(zygote: FakeZygote) -> None:
+    clock = FakeClock()
+    launcher = _launcher(zygote, clock, 2)
+    _prepare_all(launcher, FOUR)
+    dead = launcher.spares(FOUR[0], Path('/'))[0]
+    os.kill(dead.pid, 9)
+    dead.child.wait(timeout=5)
+    assert not launcher.full(FOUR[0], Path('/'))
+    clock.now += REFILL_DELAY
+    _prepare_all(launcher, FOUR[:1])  # seen dead: the refill waits
+    clock.now += REFILL_DELAY
+    _prepare_all(launcher, FOUR[:1])
+    assert len(launcher.spares(FOUR[0], Path('/'))) == 2
+    assert dead.pid not in [s.pid for s in launcher.spares(FOUR[0], Path('/'))]
+    assert not Path(f'/proc/{dead.pid}').exists()  # reaped, no zombie
+    launcher.close()
+    assert zygote.alive() == []
+
+
+def test_a_command_that_goes_takes_its_spare_with_it(zygote: FakeZygote) -> None:
+    launcher = _launcher(zygote, FakeClock(), 2)
+    _prepare_all(launcher, FOUR)
+    launcher.discard(FOUR[3], Path('/'))
+    assert len(launcher.spares(FOUR[0], Path('/'))) == 1
+    assert len(zygote.alive()) == 3
+    for argv in FOUR[:3]:
+        launcher.discard(argv, Path('/'))
+    assert zygote.alive() == []
+    launcher.close()
+
+
+def test_twenty_storms_with_spares_leave_no_process_behind(zygote: FakeZygote) -> None:
+    clock = FakeClock()
+    launcher = _launcher(zygote, clock, 2)
+    nodes: list[Child] = []
+    for _ in range(20):
+        _prepare_all(launcher, FOUR)
+        assert launcher.full(FOUR[0], Path('/'))
+        struck = [launcher.spawn(argv, _env(), Path('/')) for argv in FOUR]
+        for old in nodes:
+            old.send_signal(9)
+            old.wait(timeout=5)
+        nodes = struck
+        clock.now += REFILL_DELAY
+    assert zygote.nodes == []
+    _prepare_all(launcher, FOUR)
+    assert len(zygote.alive()) == 4 + 4  # pool and spares, full again, and the last storm's
+    for argv in FOUR:
+        launcher.discard(argv, Path('/'))
+    for node in nodes:
+        node.send_signal(9)
+        node.wait(timeout=5)
     assert zygote.alive() == []
     launcher.close()

@@ -33,6 +33,7 @@ def test_roles_come_from_the_command_line() -> None:
     assert role_of([f'{python} -m rory_runtime.cli supervise x.yaml']) == 'supervisor'
     assert role_of(['rory-standby']) == 'standby'
     assert role_of(['rory-zygote']) == 'zygote'
+    assert role_of(['rory-spare']) == 'spare'
     assert role_of([python, 'targets/amcl/amcl_node.py', '--ros-args']) == 'node'
     # A node merely named like a command is still the node.
     assert role_of([python, 'supervise.py']) == 'node'

@@ -403,6 +403,16 @@ def _become_node(request: dict[str, Any]) -> int:
     return 0
 
 
+def _ready_then_activation(ready: int, control: int) -> Activation | None:
+    """Say ready; wait for the activation line (None: dropped before use)."""
+    os.write(ready, b'R')
+    os.close(ready)
+    try:
+        return read_activation(control)
+    finally:
+        os.close(control)
+
+
 def _become_standby(request: dict[str, Any], control: int, ready: int) -> int:
     """rclpy.init and a placeholder node; wait; become the node named at activation."""
     title(STANDBY_TITLE)
@@ -415,12 +425,7 @@ def _become_standby(request: dict[str, Any], control: int, ready: int) -> int:
     init_args = list(request['init_args'])
     rclpy.init(args=init_args)
     placeholder = quiet_node(f'{PLACEHOLDER_PREFIX}{os.getpid()}')
-    os.write(ready, b'R')
-    os.close(ready)
-    try:
-        activation = read_activation(control)
-    finally:
-        os.close(control)
+    activation = _ready_then_activation(ready, control)
     if activation is None:  # dropped before use
         placeholder.destroy_node()
         rclpy.shutdown()
@@ -448,12 +453,7 @@ def _become_standby(request: dict[str, Any], control: int, ready: int) -> int:
 def _become_spare(request: dict[str, Any], control: int, ready: int) -> int:
     """Wait, without rclpy; become the node named at activation, as a node fork would."""
     title(SPARE_TITLE)
-    os.write(ready, b'R')
-    os.close(ready)
-    try:
-        activation = read_activation(control)
-    finally:
-        os.close(control)
+    activation = _ready_then_activation(ready, control)
     if activation is None:  # dropped before use
         return 0
     return _become_node({'argv': list(activation.argv), 'env': activation.env,

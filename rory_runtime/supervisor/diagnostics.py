@@ -16,9 +16,7 @@ spawns, recoveries with their S1-S4 times, checkpoints, quarantined messages.
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Iterable
-from dataclasses import dataclass
 from typing import Any, Final
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -26,7 +24,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from ..freshness import Verdict
+from .health import NodeHealth
 from .states import NodeState
 
 # /diagnostics is one topic for the whole robot (aggregators listen there); the events are the
@@ -48,33 +46,6 @@ _WARN_STATES: Final = frozenset({
     NodeState.BACKOFF, NodeState.RESTORING, NodeState.REPLAYING, NodeState.GATED,
     NodeState.STOPPING,
 })
-
-
-@dataclass(frozen=True)
-class NodeHealth:
-    """One supervised node as /diagnostics shows it."""
-
-    node: str
-    state: NodeState
-    method: str
-    pid: int | None
-    incarnation: int
-    crashes: int
-    last_recovery_ms: float | None
-    last_recovery_age_s: float | None
-    last_checkpoint_age_s: float | None
-    standby: str  # 'ready', 'starting', 'none' or 'off'
-    # Seconds past what the checkpoint interval lets a running node go without one, if late.
-    checkpoint_overdue_s: float | None = None
-    # The node's last checkpoint failure (a variable that cannot be saved, a full disk), until
-    # a checkpoint succeeds.
-    checkpoint_error: str | None = None
-    # Why the supervisor gave up (FATAL), in its own words.
-    fatal_reason: str | None = None
-    # What the last restore did with each key variable.
-    freshness: Verdict | None = None
-    # The release gate's service, while the node waits at it (GATED).
-    gate_service: str | None = None
 
 
 OK: Final[bytes] = bytes(DiagnosticStatus.OK)
@@ -184,10 +155,3 @@ class Reporter:
         array = DiagnosticArray(status=[node_status(h, namespace) for h in nodes])
         array.header.stamp = self._node.get_clock().now().to_msg()
         self._diagnostics.publish(array)
-
-
-def age(since: float | None, now: float | None = None) -> float | None:
-    """Seconds since a monotonic time, or None."""
-    if since is None:
-        return None
-    return (time.monotonic() if now is None else now) - since

@@ -49,3 +49,15 @@ Event = ChildExited | StatusReceived | Released | Stop | GateCall
 
 GATE_CALL_ANSWER = 2.0
 """Seconds a release call waits for the main loop's answer (it is busy for milliseconds)."""
+
+
+def ask_gate(events: queue.SimpleQueue[Event], node: str,
+             timeout: float = GATE_CALL_ANSWER) -> tuple[bool, str]:
+    """A call on ``node``'s release gate, from the thread that serves it (the ROS spinner's):
+    the main loop owns the node's state and answers (``ManagedNode.on_gate_call``)."""
+    reply: queue.Queue[tuple[bool, str]] = queue.Queue(maxsize=1)
+    events.put(GateCall(node, reply))
+    try:
+        return reply.get(timeout=timeout)
+    except queue.Empty:
+        return False, 'the supervisor did not answer'

@@ -6,16 +6,12 @@ from __future__ import annotations
 
 import logging
 import os
-import queue
 import random
 import signal
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any
-
-from std_msgs.msg import UInt8MultiArray
-from std_srvs.srv import Trigger
 
 from .. import protocol
 from ..dds import node_profile_env
@@ -39,28 +35,22 @@ from ..protocol import (
 )
 from ..store import CheckpointStore
 from .config import NodeConfig
-from .diagnostics import NodeHealth, age
-from .lineage import InputGap
-from .loop_events import GATE_CALL_ANSWER, ChildExited, GateCall, Released
+from .gate import SYNC_PERIOD, Gate
+from .health import NodeHealth, age
+from .loop_events import ChildExited, Released
 from .poison import PoisonGuard, Quarantined
-from .ports import Capture, RingPort, SupervisorPorts
+from .ports import EnvelopePort, RingPort, SupervisorPorts
 from .process import Child, RestartPolicy, describe_exit
-from .recovery import Recovery
+from .recovery import EarlyCapture, GapReports, Recovery
+from .standby_keeper import StandbyKeeper
 from .states import LOG_PREFIX, NodeState, NodeStateMachine, StateEvent
 from .watchdog import Beat, Hung, Unheard, Watchdog
 
 _logger = logging.getLogger('rory.supervisor')
 
 
-SYNC_PERIOD = 0.05
-"""Seconds between SYNC envelopes until the node answers (DDS discovery of a new process)."""
-
 STOP_GRACE = (3.0, 2.0)
 """Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
-
-STANDBY_DELAY = 1.0
-"""Seconds a node runs after its (re)start before its next standby is started: the standby's
-imports must not compete with the node's own start or recovery for the CPU."""
 
 _LIVE = frozenset({
     NodeState.STARTING, NodeState.ARMING, NodeState.RUNNING, NodeState.RESTORING,
@@ -110,49 +100,28 @@ class ManagedNode:
         self.watchdog = Watchdog(self.slot, sup.clock, sup.read_beat, cfg.hang_timeout,
                                  cfg.start_timeout, cfg.hello_timeout)
         self.resumed = False  # first started from the store of a run that did not stop
-        self.standby_for: int | None = None  # the incarnation whose successor is on standby
-        self.standby_checked_at = 0.0  # when the standby pool was last topped up for it
+        self.standby = StandbyKeeper(sup, cfg,
+                                     lambda: self._env(Mode.RECOVER, self.incarnation + 1))
         self.crashes_total = 0
-        self.reported_gaps: set[InputGap] = set()  # input gaps already logged (recovery.py)
-        # What the ring took since the heartbeat went late (None: not capturing).
-        self.early_capture: Capture | None = None
+        self.gaps = GapReports(self.id, sup.events_log)  # input gaps, each said once
+        self.early = EarlyCapture(self.id)  # what the ring took since the beat went late
         self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
         # The shadow topic of the current process (protocol.replay_topic: one per incarnation),
-        # made at each spawn; earlier ones are destroyed once no replay streams on them.
-        self._replay_writer: Any = None
-        self.replay_pub: protocol.SignedPublisher | None = None
-        self._retired_writers: list[Any] = []
-        # The release gate (config.ReleaseGate): the RELEASED stats held while GATED, when
-        # the gate times out, whether it was called before the node reached it, OPEN sent.
-        self.gated_stats: ReleasedStatus | None = None
-        self.gated_at: float | None = None
-        self.gate_deadline: float | None = None
-        self.gate_called = False
-        self.open_sent = False
-        self.open_sent_at = 0.0
-        self.gate_reason = ''
+        # made at each spawn by the ROS side; earlier ones are destroyed once no replay
+        # streams on them (retire_shadow_topics).
+        self.replay_pub: EnvelopePort | None = None
+        # The release gate (its service is served by the ROS side: on_gate_call).
+        self.gate = (None if cfg.release_gate is None else
+                     Gate(self.id, cfg.release_gate, f'{sup.channel}/{self.id}/release',
+                          sup.clock, self._publish_open))
         self.fatal_reason: str | None = None
         # What the last recovery did with each key variable (freshness.py's verdict).
         self.last_freshness: Verdict | None = None
-
-        # Its statuses come on the supervisor's status socket (inbox.py), not over DDS.
-        if cfg.release_gate is not None:
-            sup.ros_node.create_service(Trigger, self.gate_service, self._gate_service_call)
 
     @property
     def gate_service(self) -> str:
         """The release gate's ``std_srvs/Trigger`` service: ``/rory/<node>/release``."""
         return f'{self.sup.channel}/{self.id}/release'
-
-    def _gate_service_call(self, _request: Any, response: Any) -> Any:
-        # On the ROS spinner thread: the main loop owns the node's state and answers.
-        reply: queue.Queue[tuple[bool, str]] = queue.Queue(maxsize=1)
-        self.sup.events.put(GateCall(self.id, reply))
-        try:
-            response.success, response.message = reply.get(timeout=GATE_CALL_ANSWER)
-        except queue.Empty:
-            response.success, response.message = False, 'the supervisor did not answer'
-        return response
 
     # -- process life -------------------------------------------------------------------------
 
@@ -196,17 +165,14 @@ class ManagedNode:
         # One nonce per process: a SYNCED that answers any of its SYNCs proves the path.
         self.current = Incarnation(self.incarnation, random.getrandbits(63))
         self.watchdog.watch()
-        self._new_shadow_topic()
+        # A writer on the new incarnation's shadow topic; the last one waits to be retired.
+        self.replay_pub = self.sup.open_shadow_topic(self.id, self.incarnation)
         env = self._env(mode, self.incarnation)
         child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder,
                                         label=self.id)
         self.child = child
         incarnation = self.incarnation
-        warm = bool(getattr(child, 'warm', False))
-        why_cold = str(getattr(child, 'why_cold', ''))
-        if self.standby_for is not None and not warm:
-            _logger.warning('%s %s: started cold: %s', LOG_PREFIX, self.id, why_cold)
-        self.standby_for = None
+        warm = self.standby.spawned(child)
         _logger.info(
             '%s %s: spawned pid %d (incarnation %d, %s, %s)', LOG_PREFIX, self.id, child.pid,
             incarnation, mode.value, 'from its standby' if warm else 'cold',
@@ -221,21 +187,6 @@ class ManagedNode:
             )
 
         threading.Thread(target=reap, name=f'rory-reap-{self.id}', daemon=True).start()
-
-    def _new_shadow_topic(self) -> None:
-        """A writer on the new incarnation's shadow topic; the last one waits to be retired."""
-        if self._replay_writer is not None:
-            self._retired_writers.append(self._replay_writer)
-        self._replay_writer = self.sup.ros_node.create_publisher(
-            UInt8MultiArray, protocol.replay_topic(self.id, self.incarnation, self.sup.channel),
-            protocol.REPLAY_QOS)
-        self.replay_pub = protocol.SignedPublisher(self._replay_writer, self.sup.secret)
-
-    def _retire_shadow_topics(self) -> None:
-        """Destroy earlier incarnations' writers: no replay streams on them any more."""
-        for writer in self._retired_writers:
-            self.sup.ros_node.destroy_publisher(writer)
-        self._retired_writers.clear()
 
     def start(self) -> None:
         """First start of the node."""
@@ -284,9 +235,9 @@ class ManagedNode:
         self.sup.events_log.write('exit', self.id, code=ev.code, incarnation=ev.incarnation)
         if ev.code == 0 and not self.cfg.restart_on_clean_exit:
             self.sm.change_state(NodeState.EXITED, how)
-            self._drop_standby()
+            self.standby.drop()
             self._end_recovery()
-            self._stop_early_capture('exited')
+            self.early.stop(self.ring, 'exited')
             return
         self.crashes_total += 1
         ran_for = 0.0 if self.running_since is None else ev.at - self.running_since
@@ -317,8 +268,9 @@ class ManagedNode:
         child, self.child = self.child, None
         if child is not None:  # refused or gated: the process the supervisor will not run
             child.send_signal(signal.SIGKILL)
-        self._drop_standby()
-        self.gated_stats = None
+        self.standby.drop()
+        if self.gate is not None:
+            self.gate.held = None
         if self.recovery is not None:
             self.recovery.give_up()
 
@@ -352,15 +304,14 @@ class ManagedNode:
             # Crashed during the handover of an earlier recovery, whose S4 released the safe
             # state: that one ends here, and this crash is a recovery of its own.
             rec.stop()
-            self._report_input_gaps(rec)  # also those held back for a switch that never came
+            self.gaps.report(rec)  # also those held back for a switch that never came
         ring = self.ring if self.cfg.method.logs else None
         rec = Recovery(
             node_id=self.id, crashed=ev.at, crashed_ns=ev.at_ns, safety=self.sup.safety,
             ring=ring, segments=self.segments, checkpoints=self.checkpoints, clock=self._now,
         )
         self.recovery = rec
-        early, self.early_capture = self.early_capture, None
-        rec.begin(early)
+        rec.begin(self.early.take())
 
     def _restart(self) -> None:
         self.restart_at = None
@@ -383,11 +334,13 @@ class ManagedNode:
         elif isinstance(status, ReleasedStatus):
             self._on_released(status)
         elif isinstance(status, OpenedStatus):
-            if self.sm.state == NodeState.GATED and self.gated_stats is not None:
+            gate = self.gate
+            if self.sm.state == NodeState.GATED and gate is not None and gate.held is not None:
                 # What the node published while it waited was muted: counted, never sent.
-                self.sup.events_log.write('gate_opened', self.id, reason=self.gate_reason,
+                self.sup.events_log.write('gate_opened', self.id, reason=gate.reason,
                                           muted=status.muted)
-                stats, self.gated_stats = self.gated_stats, None
+                stats = gate.opened()
+                assert stats is not None
                 self._finish_release(stats)
         elif isinstance(status, CheckpointStatus):
             # DEBUG: one every checkpoint_interval per node is routine (events.jsonl,
@@ -516,65 +469,34 @@ class ManagedNode:
     def _on_released(self, stats: ReleasedStatus) -> None:
         self.running_since = self._now()
         recovering = self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING)
-        if recovering and self.recovery is not None and self.cfg.release_gate is not None:
-            self._enter_gate(stats)
+        if recovering and self.recovery is not None and self.gate is not None:
+            self._enter_gate(self.gate, stats)
             return
         self._finish_release(stats)
 
-    def _enter_gate(self, stats: ReleasedStatus) -> None:
+    def _enter_gate(self, gate: Gate, stats: ReleasedStatus) -> None:
         """Caught up and live, outputs muted: wait for the release call (or the timeout)."""
-        gate = self.cfg.release_gate
-        assert gate is not None
-        self.gated_stats = stats
-        self.gated_at = self._now()
-        self.open_sent = False
-        self.gate_deadline = None if gate.timeout is None else self.gated_at + gate.timeout
-        limit = ('' if gate.timeout is None
-                 else f', {gate.on_timeout.replace("_", " ")} after {gate.timeout:g} s')
-        self.sm.change_state(NodeState.GATED, f'caught up; outputs muted and the safe state '
-                                              f'held until {self.gate_service} is called{limit}')
-        self.sup.events_log.write('gated', self.id, service=self.gate_service,
-                                  timeout=gate.timeout, on_timeout=gate.on_timeout)
-        if self.gate_called:
-            self._open_gate('called before the node had caught up')
+        self.sm.change_state(NodeState.GATED, gate.enter(stats))
+        self.sup.events_log.write('gated', self.id, service=gate.service,
+                                  timeout=gate.config.timeout, on_timeout=gate.config.on_timeout)
+        if gate.called:
+            gate.open('called before the node had caught up')
 
-    def _open_gate(self, why: str) -> None:
-        """Tell the node to unmute; S4 ends when it says OPENED."""
-        if self.open_sent:
-            return
-        self.open_sent = True
-        self.gate_reason = why
-        _logger.info('%s %s: release gate opened (%s)', LOG_PREFIX, self.id, why)
-        self._send_open()
-
-    def _send_open(self) -> None:
-        # Sent again each SYNC_PERIOD until OPENED: under restart and checkpoint no SYNC has
-        # proved the shadow path, and an OPEN sent before the node's reader matched is lost.
-        self.open_sent_at = self._now()
+    def _publish_open(self) -> None:
         assert self.replay_pub is not None  # made by spawn()
         self.replay_pub.publish(protocol.pack_open(self.incarnation))
 
     def on_gate_call(self) -> tuple[bool, str]:
         """A call on the release gate service (main thread): the answer to give."""
-        state = self.sm.state
-        if state == NodeState.GATED:
-            self._open_gate(f'{self.gate_service} called')
-            return True, f'{self.id}: released'
-        if state in (NodeState.CRASHED, NodeState.BACKOFF, NodeState.RESTORING,
-                     NodeState.REPLAYING):
-            self.gate_called = True
-            return True, f'{self.id}: {state.value.lower()}; released as soon as it has caught up'
-        return False, f'{self.id}: {state.value}, no recovery waits for release'
+        if self.gate is None:
+            return False, f'{self.id}: no release gate'
+        return self.gate.on_call(self.sm.state)
 
     def _finish_release(self, stats: ReleasedStatus) -> None:
         rec = self.recovery
         if rec is not None and self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING,
                                                  NodeState.GATED):
-            gate_ms = (None if self.gated_at is None
-                       else round((self._now() - self.gated_at) * 1000.0, 1))
-            gate_reason = self.gate_reason or None
-            self.gated_at, self.gate_deadline, self.gate_called = None, None, False
-            self.open_sent, self.gate_reason = False, ''
+            gate_ms, gate_reason = (None, None) if self.gate is None else self.gate.finish()
             timing = rec.s4_release()
             self.last_recovery = (timing['total_ms'], self._now())
             self.sm.change_state(NodeState.RUNNING, 'released')
@@ -592,7 +514,7 @@ class ManagedNode:
                 _logger.log(level, '%s %s: %s', LOG_PREFIX, self.id,
                             describe_verdict(verdict))
             pace = self._replay_pace().value if self.cfg.method.logs else None
-            gaps = self._report_input_gaps(rec)
+            gaps = self.gaps.report(rec)
             never = rec.never_delivered()
             for topic, dropped in never.items():
                 _logger.warning(
@@ -615,35 +537,6 @@ class ManagedNode:
         elif self.sm.state in (NodeState.STARTING, NodeState.ARMING):
             self.sm.change_state(NodeState.RUNNING, 'released')
 
-    def _report_input_gaps(self, rec: Recovery) -> list[InputGap]:
-        """Say which input messages never reached this host during the recovery (once each).
-
-        RORY cannot replay them, and a node that had not crashed would not have had them
-        either (its reader was dropped too), so the recovery still ends where that node would
-        be; but an operator must know that messages were lost, and why.
-        """
-        ring = rec.ring
-
-        def trustworthy(gap: InputGap) -> bool:
-            reader = ring.topics.get(gap.topic) if ring is not None else None
-            if reader is None or not reader.spec.reliable:
-                return False
-            publishers = gap.publishers if gap.publishers >= 0 else reader.publisher_count()
-            return publishers == 1
-
-        new = [g for g in rec.input_gaps(trustworthy) if g not in self.reported_gaps]
-        for gap in new:
-            self.reported_gaps.add(gap)
-            _logger.warning(
-                '%s %s: input %s: %d messages (publication seq %d-%d) never reached this host '
-                'while the node was down, so they cannot be replayed: DDS dropped them before '
-                "RORY's reader took them (a link outage longer than the DDS lease drops remote "
-                'readers, and a node that had not crashed would have missed them too; or more '
-                "arrived than the reader's history holds)", LOG_PREFIX, self.id, gap.topic,
-                gap.missing, gap.first, gap.last)
-            self.sup.events_log.write('input_gap', self.id, **gap.to_json())
-        return new
-
     def _end_recovery(self) -> None:
         if self.sm.state == NodeState.GATED:
             # Every topic is live again, but S4 waits for the gate; the release ends it.
@@ -651,18 +544,12 @@ class ManagedNode:
         if self.recovery is not None:
             # Leaves the safe state if S4 has not: the node exited (status 0) while recovering.
             self.recovery.finish()
-            self._report_input_gaps(self.recovery)  # after finish: none is held back any more
+            self.gaps.report(self.recovery)  # after finish: none is held back any more
             self.recovery = None
-        self._retire_shadow_topics()
+        self.sup.retire_shadow_topics(self.id)
 
     def health(self, now: float) -> NodeHealth:
         """This node as /diagnostics shows it."""
-        standby = 'off'
-        if self.cfg.warm_standby:
-            find = getattr(self.sup.launcher, 'standby', None)
-            waiting = find(self.cfg.command, self.sup.config.folder) if find else None
-            standby = ('none' if waiting is None
-                       else 'ready' if waiting.ready_at is not None else 'starting')
         last = self.last_recovery
         return NodeHealth(
             node=self.id, state=self.sm.state, method=self.cfg.method.value,
@@ -671,37 +558,13 @@ class ManagedNode:
             last_recovery_ms=last[0] if last else None,
             last_recovery_age_s=age(last[1], now) if last else None,
             last_checkpoint_age_s=age(self.watchdog.last_checkpoint_at, now),
-            standby=standby,
+            standby=self.standby.status(),
             checkpoint_overdue_s=self.checkpoint_overdue(now),
             checkpoint_error=self.current.checkpoint_error,
             fatal_reason=self.fatal_reason,
             freshness=self.last_freshness if self.cfg.method.checkpoints else None,
             gate_service=self.gate_service if self.cfg.release_gate is not None else None,
         )
-
-    def _prepare_standby(self, now: float) -> None:
-        """Have the pool of processes that will replace this one (or another node that shares
-        them) at its next crash full: another node's crash may have taken one."""
-        first = self.standby_for != self.incarnation
-        self.standby_for = self.incarnation
-        self.standby_checked_at = now
-        pids = self.sup.launcher.prepare(
-            self.cfg.command, self._env(Mode.RECOVER, self.incarnation + 1),
-            self.sup.config.folder,
-        )
-        if pids is None:
-            if first:
-                _logger.info('%s %s: no warm standby for this command (not python FILE or '
-                             'python -m MODULE); restarts are cold', LOG_PREFIX, self.id)
-            return
-        for pid in pids:
-            _logger.info('%s %s: standby pid %d started', LOG_PREFIX, self.id, pid)
-            self.sup.events_log.write('standby', self.id, pid=pid, incarnation=self.incarnation)
-
-    def _drop_standby(self) -> None:
-        if self.standby_for is not None:
-            self.sup.launcher.discard(self.cfg.command, self.sup.config.folder)
-            self.standby_for = None
 
     def _checkpointing_since(self) -> float | None:
         """When it was released, if it runs released (RUNNING) and checkpoints; else None."""
@@ -739,23 +602,14 @@ class ManagedNode:
             # Released, still relaying until every topic is live again: a gap the relay shows
             # (a message lost between R and the live reader) is said now, not only at the end
             # of a handover that may never end (a topic whose publisher stops).
-            self._report_input_gaps(self.recovery)
-        if (state == NodeState.RUNNING and self.cfg.warm_standby
-                and self.running_since is not None and now - self.running_since >= STANDBY_DELAY
-                and (self.standby_for != self.incarnation
-                     or now - self.standby_checked_at >= STANDBY_DELAY)):
-            self._prepare_standby(now)
-        if state == NodeState.GATED and self.open_sent and now - self.open_sent_at >= SYNC_PERIOD:
-            self._send_open()
-        if (state == NodeState.GATED and self.gate_deadline is not None
-                and now >= self.gate_deadline and not self.open_sent):
-            gate = self.cfg.release_gate
-            assert gate is not None
-            if gate.on_timeout == 'release':
-                self._open_gate(f'no call within {gate.timeout:g} s; on_timeout: release')
-            else:
-                self._give_up(f'no call on {self.gate_service} within {gate.timeout:g} s; '
-                              'on_timeout: give_up; the safe state is held')
+            self.gaps.report(self.recovery)
+        if state == NodeState.RUNNING and self.standby.due(now, self.incarnation,
+                                                          self.running_since):
+            self.standby.prepare(now, self.incarnation)
+        if state == NodeState.GATED and self.gate is not None:
+            given_up = self.gate.tick(now)
+            if given_up is not None:
+                self._give_up(given_up)
         if state == NodeState.BACKOFF and self.restart_at is not None and now >= self.restart_at:
             self._restart()
         elif state in (NodeState.ARMING, NodeState.REPLAYING):
@@ -775,7 +629,11 @@ class ManagedNode:
             return
         for finding in self.watchdog.check(now, heard=self.current.hello is not None):
             if isinstance(finding, Beat):
-                self._keep_inputs_while_late(finding)
+                # S2 early: only for a running node that logs, not already recovering.
+                ring = self.ring if self.cfg.method.logs else None
+                if (ring is not None and self.sm.state == NodeState.RUNNING
+                        and self.recovery is None):
+                    self.early.on_beat(ring, finding)
             elif isinstance(finding, Hung):
                 self._on_hung(child, finding)
             elif isinstance(finding, Unheard):
@@ -802,32 +660,6 @@ class ManagedNode:
         # process that never beat: it has no stack worth printing.
         child.send_signal(hung.signal)
 
-    def _keep_inputs_while_late(self, beat: Beat) -> None:
-        """S2 early: while the heartbeat is late, the ring keeps every input message.
-
-        If the node is then killed as hung (or dies), its recovery starts from all of them
-        (``_crashed``); if it beats again, it was only slow and the capture is dropped.
-        """
-        ring = self.ring if self.cfg.method.logs else None
-        if ring is None or self.sm.state != NodeState.RUNNING or self.recovery is not None:
-            return
-        if beat.late and self.early_capture is None:
-            self.early_capture = Capture()
-            ring.activate(self.early_capture)
-            _logger.info('%s %s: no heartbeat for %.1f s: RORY keeps its inputs from now on',
-                         LOG_PREFIX, self.id, beat.age_s)
-        elif not beat.late and self.early_capture is not None:
-            self._stop_early_capture(f'beating again ({len(self.early_capture)} messages '
-                                     'kept meanwhile, dropped)')
-
-    def _stop_early_capture(self, why: str) -> None:
-        if self.early_capture is None:
-            return
-        self.early_capture = None
-        if self.ring is not None:
-            self.ring.deactivate()
-        _logger.info('%s %s: input capture stopped: %s', LOG_PREFIX, self.id, why)
-
     def _on_unheard(self, child: Child, unheard: Unheard) -> None:
         """The process runs but its HELLO never arrived: replace it (a crash, recovered)."""
         _logger.error(
@@ -844,11 +676,11 @@ class ManagedNode:
         if self.sm.state in (NodeState.STOPPING, NodeState.STOPPED):
             return
         self.sm.change_state(NodeState.STOPPING, 'supervisor stopping')
-        self._drop_standby()
+        self.standby.drop()
         if self.recovery is not None:
             # The safe state stays as it is: held if the node had not been released.
             self.recovery.stop()
-            self._report_input_gaps(self.recovery)  # after stop: none is held back any more
+            self.gaps.report(self.recovery)  # after stop: none is held back any more
         child = self.child
         if child is not None:
             for sig, grace in zip(

@@ -1,12 +1,13 @@
-"""What a supervised node (:class:`~.supervisor.ManagedNode`) needs from its supervisor.
+"""What a supervised node (:class:`~.managed_node.ManagedNode`) needs from its supervisor.
 
 The supervisor's per-node decisions (crash, hang, backoff, give-up, recovery steps, the release
 gate) run in ``ManagedNode``, driven by three entry points on the main thread: ``on_exit``,
 ``on_status`` and ``tick``; the heartbeat's in ``watchdog.Watchdog`` and the recovery steps in
 ``recovery.Recovery``, which it drives. Everything they reach outside themselves goes through
 this protocol: the clock, the heartbeat reader, the launcher, the event log, the safe state,
-the ring, the status socket's address, and the few rclpy calls that make the node's shadow-topic
-writer and release service. The real :class:`~.supervisor.Supervisor` provides them;
+the ring, the status socket's address, and the node's shadow-topic writers (made by the ROS
+side, which also serves the release gate's service and calls ``ManagedNode.on_gate_call``). The
+real :class:`~.supervisor.Supervisor` provides them;
 tests/supervisor/fake_supervisor.py provides fakes, so those decisions are unit-tested without
 a ROS process (tests/supervisor/test_managed_node.py, tests/supervisor/test_watchdog.py), as
 supervisord tests its process logic.
@@ -129,22 +130,6 @@ class EnvelopePort(Protocol):
         ...
 
 
-class RosPort(Protocol):
-    """The rclpy node calls a managed node makes on the supervisor's own node."""
-
-    def create_publisher(self, msg_type: Any, topic: str, qos_profile: Any) -> Any:
-        """A shadow-topic writer."""
-        ...
-
-    def destroy_publisher(self, publisher: Any) -> Any:
-        """An earlier incarnation's shadow-topic writer, retired."""
-        ...
-
-    def create_service(self, srv_type: Any, srv_name: str, callback: Any) -> Any:
-        """The release gate's service."""
-        ...
-
-
 class SupervisorPorts(Protocol):
     """The supervisor as a managed node sees it."""
 
@@ -179,11 +164,6 @@ class SupervisorPorts(Protocol):
         ...
 
     @property
-    def ros_node(self) -> RosPort:
-        """The supervisor's rclpy node."""
-        ...
-
-    @property
     def channel(self) -> str:
         """The namespace of the topics between supervisor and nodes (``/rory``)."""
         ...
@@ -204,6 +184,16 @@ class SupervisorPorts(Protocol):
 
     def make_ring(self, node_id: str) -> RingPort:
         """A ring for one node's inputs."""
+        ...
+
+    def open_shadow_topic(self, node_id: str, incarnation: int) -> EnvelopePort:
+        """A writer on the shadow topic of this incarnation of the node (``protocol.replay_topic``);
+        the node's earlier writers wait to be retired."""
+        ...
+
+    def retire_shadow_topics(self, node_id: str) -> None:
+        """Destroy the node's earlier writers (all but the newest): no replay streams on them
+        any more."""
         ...
 
     def post_status(self, text: str) -> None:

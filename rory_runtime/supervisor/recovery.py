@@ -59,8 +59,9 @@ from ..protocol import (
 from ..store import CheckpointStore
 from .lineage import Admission, InputGap, SequenceWatch, Verdict
 from .poison import Quarantined, died_on_json
-from .ports import EnvelopePort, RingPort, SafetyPort
+from .ports import Capture, EnvelopePort, EventSink, RingPort, SafetyPort
 from .states import LOG_PREFIX
+from .watchdog import Beat
 
 _logger = logging.getLogger('rory.supervisor')
 
@@ -435,7 +436,7 @@ class Recovery:
 
         Args:
             early: What the ring took since the node's heartbeat went late, if it did
-                (``ManagedNode._keep_inputs_while_late``): R starts from it.
+                (:class:`EarlyCapture`): R starts from it.
         """
         self.s1_safe_state()
         self.s2_isolate(early)
@@ -653,3 +654,81 @@ class Recovery:
             self.streamer = None
         if self.rlog is not None:
             self.rlog.close()
+
+
+class EarlyCapture:
+    """S2 early: while a running node's heartbeat is late, the ring keeps every input message.
+
+    If the node is then killed as hung (or dies), its recovery starts from all of them
+    (:meth:`take`, at the crash: :meth:`Recovery.begin`); if it beats again, it was only slow
+    and the capture is dropped.
+    """
+
+    def __init__(self, node_id: str) -> None:
+        self.node_id = node_id
+        self.capture: Capture | None = None  # what the ring took since the beat went late
+
+    def on_beat(self, ring: RingPort, beat: Beat) -> None:
+        """The watchdog's view of the heartbeat (a running node, not recovering, that logs)."""
+        if beat.late and self.capture is None:
+            self.capture = Capture()
+            ring.activate(self.capture)
+            _logger.info('%s %s: no heartbeat for %.1f s: RORY keeps its inputs from now on',
+                         LOG_PREFIX, self.node_id, beat.age_s)
+        elif not beat.late and self.capture is not None:
+            self.stop(ring, f'beating again ({len(self.capture)} messages kept meanwhile, '
+                      'dropped)')
+
+    def stop(self, ring: RingPort | None, why: str) -> None:
+        """Drop the capture, if any, and make the ring passive again."""
+        if self.capture is None:
+            return
+        self.capture = None
+        if ring is not None:
+            ring.deactivate()
+        _logger.info('%s %s: input capture stopped: %s', LOG_PREFIX, self.node_id, why)
+
+    def take(self) -> Capture | None:
+        """What was captured, for the recovery of a crash; the capture ends (the ring stays
+        active: the recovery's R takes over)."""
+        capture, self.capture = self.capture, None
+        return capture
+
+
+class GapReports:
+    """Says which input messages never reached this host during a node's recoveries (once
+    each: the ``input_gap`` event and a warning).
+
+    RORY cannot replay them, and a node that had not crashed would not have had them either
+    (its reader was dropped too), so the recovery still ends where that node would be; but an
+    operator must know that messages were lost, and why.
+    """
+
+    def __init__(self, node_id: str, events: EventSink) -> None:
+        self.node_id = node_id
+        self._events = events
+        self.reported: set[InputGap] = set()
+
+    def report(self, rec: Recovery) -> list[InputGap]:
+        """Report the gaps of ``rec`` not reported yet; those."""
+        ring = rec.ring
+
+        def trustworthy(gap: InputGap) -> bool:
+            reader = ring.topics.get(gap.topic) if ring is not None else None
+            if reader is None or not reader.spec.reliable:
+                return False
+            publishers = gap.publishers if gap.publishers >= 0 else reader.publisher_count()
+            return publishers == 1
+
+        new = [g for g in rec.input_gaps(trustworthy) if g not in self.reported]
+        for gap in new:
+            self.reported.add(gap)
+            _logger.warning(
+                '%s %s: input %s: %d messages (publication seq %d-%d) never reached this host '
+                'while the node was down, so they cannot be replayed: DDS dropped them before '
+                "RORY's reader took them (a link outage longer than the DDS lease drops remote "
+                'readers, and a node that had not crashed would have missed them too; or more '
+                "arrived than the reader's history holds)", LOG_PREFIX, self.node_id, gap.topic,
+                gap.missing, gap.first, gap.last)
+            self._events.write('input_gap', self.node_id, **gap.to_json())
+        return new

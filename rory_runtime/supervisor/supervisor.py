@@ -21,13 +21,15 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
-from typing import Literal
+from typing import Any, Literal
 
 import rclpy
 import rclpy.utilities
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import UInt8MultiArray
+from std_srvs.srv import Trigger
 
 from .. import protocol
 from ..dds import fast_rediscovery_env
@@ -40,11 +42,12 @@ from .config import SupervisorConfig, check_store, store_error
 from .diagnostics import Reporter
 from .events import EventLog, RosoutHandler
 from .inbox import StatusInbox
-from .loop_events import ChildExited, Event, GateCall, Released, StatusReceived, Stop
+from .loop_events import ChildExited, Event, GateCall, Released, StatusReceived, Stop, ask_gate
 from .managed_node import ManagedNode
 from .output import OutputPrefixer
 from .parameters import NODE_NAME as SUPERVISOR_NODE
 from .parameters import apply_parameters, own_ros_args
+from .ports import EnvelopePort
 from .process import Launcher
 from .ring import Ring, RingContext
 from .run_marker import PreviousRun, RunMarker, make_room_for_previous
@@ -94,6 +97,8 @@ class Supervisor:
         self.events: queue.SimpleQueue[Event] = queue.SimpleQueue()
         self.nodes: dict[str, ManagedNode] = {}
         self._ring_ctx: RingContext | None = None
+        # Per node, the writers of its shadow topics: the current incarnation's last.
+        self._shadow_writers: dict[str, list[Any]] = {}
         self._inbox: StatusInbox | None = None
         self._stopping = False
         self.channel = protocol.DEFAULT_CHANNEL  # set from its node's namespace in run()
@@ -130,6 +135,32 @@ class Supervisor:
         if self._ring_ctx is None:
             self._ring_ctx = RingContext(self.ros_node.context)
         return Ring(self._ring_ctx, node_id)
+
+    def open_shadow_topic(self, node_id: str, incarnation: int) -> EnvelopePort:
+        """A writer on the shadow topic of this incarnation of the node (the supervisor's own
+        node publishes it); the node's earlier writers wait to be retired."""
+        writer = self.ros_node.create_publisher(
+            UInt8MultiArray, protocol.replay_topic(node_id, incarnation, self.channel),
+            protocol.REPLAY_QOS)
+        self._shadow_writers.setdefault(node_id, []).append(writer)
+        return protocol.SignedPublisher(writer, self.secret)
+
+    def retire_shadow_topics(self, node_id: str) -> None:
+        """Destroy the node's earlier writers: no replay streams on them any more."""
+        writers = self._shadow_writers.get(node_id, [])
+        for writer in writers[:-1]:
+            self.ros_node.destroy_publisher(writer)
+        del writers[:-1]
+
+    def _serve_gate(self, node: ManagedNode) -> None:
+        """The node's release gate service (``std_srvs/Trigger``); the main loop answers."""
+
+        def call(_request: Any, response: Any) -> Any:
+            # On the ROS spinner thread: the main loop owns the node's state and answers.
+            response.success, response.message = ask_gate(self.events, node.id)
+            return response
+
+        self.ros_node.create_service(Trigger, node.gate_service, call)
 
     def _claim_store(self) -> tuple[RunMarker, bool, float | None]:
         """Lock the store; whether to resume, and since when the nodes were unsupervised.
@@ -276,7 +307,10 @@ class Supervisor:
                 lambda node, what, topic: self.events_log.write('safe_state', node, what=what,
                                                                 topic=topic))
             for cfg in self.config.nodes:
-                self.nodes[cfg.name] = ManagedNode(self, cfg)
+                node = self.nodes[cfg.name] = ManagedNode(self, cfg)
+                # Its release gate's service; its statuses come on the status socket (inbox.py).
+                if node.gate is not None:
+                    self._serve_gate(node)
             executor.add_node(self.ros_node)
             spinner.start()
             for node in self.nodes.values():

@@ -2,7 +2,7 @@
 decisions driven by hand, with no ROS process, no DDS and no real child process.
 
 ``Harness`` holds one ``ManagedNode`` over a fake clock, launcher, event log, safe state, ring
-and rclpy node; a test starts it, feeds it statuses and exits as a node process would, and
+and shadow-topic writers; a test starts it, feeds it statuses and exits as a node process would, and
 reads back what the supervisor did (states, events, signals, envelopes, the safe state, what
 the ring was given). The recovery log and the replay streamer are the real ones, on a store in
 the test's tmp_path: a ``rory`` node's replay runs as it does under the supervisor.
@@ -14,7 +14,7 @@ import dataclasses
 import queue
 import signal
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +32,7 @@ from rory_runtime.protocol import (
     SyncedStatus,
 )
 from rory_runtime.supervisor.config import SupervisorConfig, load_config
-from rory_runtime.supervisor.loop_events import ChildExited, GateCall, Released
+from rory_runtime.supervisor.loop_events import ChildExited, GateCall, Released, ask_gate
 from rory_runtime.supervisor.managed_node import ManagedNode
 from rory_runtime.supervisor.ports import RingPort
 from rory_runtime.supervisor.states import NodeState
@@ -154,30 +154,6 @@ class FakePublisher:
         self.sent.append(msg)
 
 
-class FakeRosNode:
-    """The supervisor's rclpy node: publishers that record, a service kept for calling."""
-
-    def __init__(self) -> None:
-        self.publishers: list[FakePublisher] = []
-        self.services: dict[str, Callable[[Any, Any], Any]] = {}
-
-    def create_subscription(self, msg_type: Any, topic: str, callback: Any,
-                            qos_profile: Any) -> Any:
-        return object()
-
-    def create_publisher(self, msg_type: Any, topic: str, qos_profile: Any) -> FakePublisher:
-        publisher = FakePublisher(topic)
-        self.publishers.append(publisher)
-        return publisher
-
-    def destroy_publisher(self, publisher: Any) -> None:
-        pass
-
-    def create_service(self, srv_type: Any, srv_name: str, callback: Any) -> Any:
-        self.services[srv_name] = callback
-        return object()
-
-
 @dataclasses.dataclass
 class FakeRingTopic:
     """One reader of the ring, as the supervisor reads it (``ring.RingTopic``)."""
@@ -238,7 +214,8 @@ class FakeSupervisor:
         self.events_log = FakeEvents(self.clock)
         self.events: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.safety = FakeSafety()
-        self.ros_node = FakeRosNode()
+        self.writers: list[FakePublisher] = []  # every shadow topic's writer, in order
+        self.retired: list[FakePublisher] = []
         self.channel = protocol.DEFAULT_CHANNEL
         self.secret = b'k' * 32
         self.status_address = '@rory-status-fake'
@@ -252,6 +229,14 @@ class FakeSupervisor:
         ring = FakeRing()
         self.rings.append(ring)
         return ring
+
+    def open_shadow_topic(self, node_id: str, incarnation: int) -> protocol.SignedPublisher:
+        writer = FakePublisher(protocol.replay_topic(node_id, incarnation, self.channel))
+        self.writers.append(writer)
+        return protocol.SignedPublisher(writer, self.secret)
+
+    def retire_shadow_topics(self, node_id: str) -> None:
+        self.retired.extend(w for w in self.writers[:-1] if w not in self.retired)
 
     def post_status(self, text: str) -> None:
         pass
@@ -361,13 +346,8 @@ class Harness:
         """A call on the release gate service, answered as the main loop would."""
         answer: dict[str, tuple[bool, str]] = {}
 
-        class Response:
-            success = False
-            message = ''
-
-        def call() -> None:
-            response = self.sup.ros_node.services[self.node.gate_service](None, Response())
-            answer['reply'] = (response.success, response.message)
+        def call() -> None:  # the service's thread (supervisor.py serves it)
+            answer['reply'] = ask_gate(self.sup.events, self.node.id)
 
         caller = threading.Thread(target=call)
         caller.start()
@@ -379,5 +359,5 @@ class Harness:
 
     def envelopes(self) -> list[Any]:
         """What the supervisor sent on the current process's shadow topic, unpacked."""
-        writer = self.sup.ros_node.publishers[-1]
+        writer = self.sup.writers[-1]
         return [protocol.unpack(raw, self.sup.secret) for raw in writer.sent]

@@ -8,7 +8,8 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 
 from rory_runtime.freshness import Verdict
-from rory_runtime.supervisor.diagnostics import NodeHealth, level_of, node_status
+from rory_runtime.supervisor.diagnostics import level_of, node_status
+from rory_runtime.supervisor.health import NodeHealth
 from rory_runtime.supervisor.states import NodeState
 
 

@@ -37,6 +37,16 @@ class NodeHealth:
     gate_service: str | None = None
 
 
+@dataclass
+class NodeRecord:
+    """What a node's /diagnostics say beyond its state and process, kept as it happens."""
+
+    crashes: int = 0
+    last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
+    fatal_reason: str | None = None  # why the supervisor gave up (FATAL), in its own words
+    freshness: Verdict | None = None  # what the last restore did with each key variable
+
+
 def age(since: float | None, now: float | None = None) -> float | None:
     """Seconds since a monotonic time, or None."""
     if since is None:

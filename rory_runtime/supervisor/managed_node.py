@@ -1,23 +1,22 @@
 """One supervised node's decisions (:class:`ManagedNode`), on the supervisor's ports
 (ports.py), driven by the main loop: ``on_exit``, ``on_status``, ``on_gate_call`` and
-``tick``."""
+``tick``. No rclpy here: the ROS side (supervisor.py) makes the readers, writers and services
+behind the ports. Its parts: the current process (incarnation.py), the recovery and what it
+says (recovery.py), the heartbeat (watchdog.py), the release gate (gate.py), the warm standby
+(standby_keeper.py), poison (poison.py)."""
 
 from __future__ import annotations
 
 import logging
-import os
 import random
 import signal
 import threading
 import time
-from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-from .. import protocol
-from ..dds import node_profile_env
 from ..freshness import Verdict
-from ..freshness import describe as describe_verdict
-from ..inflight import InFlight, slot_path
+from ..inflight import slot_path
 from ..log import SegmentStore
 from ..protocol import (
     CheckpointStatus,
@@ -28,7 +27,6 @@ from ..protocol import (
     Mode,
     OpenedStatus,
     ReleasedStatus,
-    ReplayPace,
     StatusMessage,
     SwitchedStatus,
     SyncedStatus,
@@ -36,21 +34,18 @@ from ..protocol import (
 from ..store import CheckpointStore
 from .config import NodeConfig
 from .gate import SYNC_PERIOD, Gate
-from .health import NodeHealth, age
+from .health import NodeHealth, NodeRecord, age
+from .incarnation import Incarnation
 from .loop_events import ChildExited, Released
-from .poison import PoisonGuard, Quarantined
-from .ports import EnvelopePort, RingPort, SupervisorPorts
-from .process import Child, RestartPolicy, describe_exit
-from .recovery import EarlyCapture, GapReports, Recovery
+from .poison import PoisonGuard
+from .ports import RingPort, SupervisorPorts
+from .process import RestartPolicy, describe_exit, node_environment, stop_child
+from .recovery import EarlyCapture, GapReports, Recovery, say_recovered
 from .standby_keeper import StandbyKeeper
 from .states import LOG_PREFIX, NodeState, NodeStateMachine, StateEvent
-from .watchdog import Beat, Hung, Unheard, Watchdog
+from .watchdog import Beat, Hung, Unheard, Watchdog, say_hung, say_overdue, say_unheard
 
 _logger = logging.getLogger('rory.supervisor')
-
-
-STOP_GRACE = (3.0, 2.0)
-"""Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
 
 _LIVE = frozenset({
     NodeState.STARTING, NodeState.ARMING, NodeState.RUNNING, NodeState.RESTORING,
@@ -59,64 +54,52 @@ _LIVE = frozenset({
 """States in which a node has a process that must beat."""
 
 
-@dataclass
-class Incarnation:
-    """What the supervisor knows of one process of a node; a new one at each spawn (its
-    heartbeat and kill: ``Watchdog``)."""
-
-    number: int
-    sync_nonce: int  # a SYNCED answering any SYNC with it proves the shadow path
-    hello: HelloStatus | None = None
-    sync_sent: float = 0.0
-    synced_counts: dict[str, int] | None = None  # its live publishers per input, from SYNCED
-    release_sent: bool = False
-    checkpoint_error: str | None = None  # its last checkpoint failure, until one succeeds
-
-
 class ManagedNode:
     """One supervised node: its process, its state, its ring and its recovery."""
 
     def __init__(self, sup: SupervisorPorts, cfg: NodeConfig) -> None:
         self.sup = sup
         self.cfg = cfg
-        self.id = cfg.name
-        self._now = sup.clock  # monotonic seconds (a unit test's fake clock)
         self.sm = NodeStateMachine(cfg.name, _logger, clock=sup.clock,
                                    listeners=[self._on_state])
         self.policy = RestartPolicy(cfg.backoff)
-        self.child: Child | None = None
-        self.incarnation = 0
-        # What belongs to the current process; a new one at each spawn.
+        # What belongs to the current process (its pid, HELLO, shadow topic); a new one at
+        # each spawn.
         self.current = Incarnation(0, 0)
         self.inputs: list[InputSpec] = []
         self.ring: RingPort | None = None
         self.recovery: Recovery | None = None
-        self.running_since: float | None = None
         self.restart_at: float | None = None
         self.checkpoints = CheckpointStore(sup.config.store, cfg.name)
         self.segments = SegmentStore(sup.config.store, cfg.name)
         self.poison = PoisonGuard(sup.config.store, cfg.name, self.segments)
-        self.slot = slot_path(sup.config.store, cfg.name)
-        self.watchdog = Watchdog(self.slot, sup.clock, sup.read_beat, cfg.hang_timeout,
-                                 cfg.start_timeout, cfg.hello_timeout)
+        self.watchdog = Watchdog(slot_path(sup.config.store, cfg.name), sup.clock,
+                                 sup.read_beat, cfg.hang_timeout, cfg.start_timeout,
+                                 cfg.hello_timeout)
         self.resumed = False  # first started from the store of a run that did not stop
         self.standby = StandbyKeeper(sup, cfg,
                                      lambda: self._env(Mode.RECOVER, self.incarnation + 1))
-        self.crashes_total = 0
-        self.gaps = GapReports(self.id, sup.events_log)  # input gaps, each said once
-        self.early = EarlyCapture(self.id)  # what the ring took since the beat went late
-        self.last_recovery: tuple[float, float] | None = None  # (total ms, monotonic when)
-        # The shadow topic of the current process (protocol.replay_topic: one per incarnation),
-        # made at each spawn by the ROS side; earlier ones are destroyed once no replay
-        # streams on them (retire_shadow_topics).
-        self.replay_pub: EnvelopePort | None = None
+        self.gaps = GapReports(cfg.name, sup.events_log)  # input gaps, each said once
+        self.early = EarlyCapture(cfg.name)  # what the ring took since the beat went late
         # The release gate (its service is served by the ROS side: on_gate_call).
         self.gate = (None if cfg.release_gate is None else
-                     Gate(self.id, cfg.release_gate, f'{sup.channel}/{self.id}/release',
-                          sup.clock, self._publish_open))
-        self.fatal_reason: str | None = None
-        # What the last recovery did with each key variable (freshness.py's verdict).
-        self.last_freshness: Verdict | None = None
+                     Gate(cfg.name, cfg.release_gate, self.gate_service, sup.clock,
+                          lambda: self.current.send_open()))
+        self.record = NodeRecord()  # crashes, last recovery, why FATAL, freshness
+
+    @property
+    def id(self) -> str:
+        return self.cfg.name
+
+    @property
+    def incarnation(self) -> int:
+        """The number of its current (or last) process; 0 before the first."""
+        return self.current.number
+
+    @property
+    def slot(self) -> Path:
+        """Its in-flight slot (heartbeat, the message being applied: inflight.py)."""
+        return self.watchdog.slot
 
     @property
     def gate_service(self) -> str:
@@ -132,46 +115,23 @@ class ManagedNode:
         )
 
     def _env(self, mode: Mode, incarnation: int) -> dict[str, str]:
-        env = dict(os.environ)
-        env.update(self.cfg.env)
-        env.update(
-            {
-                protocol.ENV_NODE: self.id,
-                protocol.ENV_STORE: str(self.sup.config.store),
-                protocol.ENV_INCARNATION: str(incarnation),
-                protocol.ENV_METHOD: self.cfg.method.value,
-                protocol.ENV_MODE: mode.value,
-                protocol.ENV_QUARANTINE: self.poison.env_value(),
-                protocol.ENV_SECRET: self.sup.secret.hex(),
-                protocol.ENV_CHANNEL: self.sup.channel,
-                protocol.ENV_STATUS: self.sup.status_address,
-                'PYTHONUNBUFFERED': '1',
-            }
-        )
-        env.update(node_profile_env(env))  # a cold node's discovery: rory_runtime/dds
-        if self.cfg.checkpoint_interval is not None:
-            env[protocol.ENV_INTERVAL] = repr(self.cfg.checkpoint_interval)
-        else:
-            env.pop(protocol.ENV_INTERVAL, None)
-        if mode == Mode.RECOVER and self.cfg.release_gate is not None:
-            env[protocol.ENV_GATED] = '1'
-        else:
-            env.pop(protocol.ENV_GATED, None)
-        return env
+        sup = self.sup
+        return node_environment(self.cfg, mode, incarnation, store=sup.config.store,
+                                quarantine=self.poison.env_value(), secret=sup.secret,
+                                channel=sup.channel, status_address=sup.status_address)
 
     def spawn(self, mode: Mode) -> None:
         """Start a new process of this node (main thread only)."""
-        self.incarnation += 1
+        incarnation = self.incarnation + 1
         # One nonce per process: a SYNCED that answers any of its SYNCs proves the path.
-        self.current = Incarnation(self.incarnation, random.getrandbits(63))
+        self.current = current = Incarnation(incarnation, random.getrandbits(63))
         self.watchdog.watch()
         # A writer on the new incarnation's shadow topic; the last one waits to be retired.
-        self.replay_pub = self.sup.open_shadow_topic(self.id, self.incarnation)
-        env = self._env(mode, self.incarnation)
+        current.replay_pub = self.sup.open_shadow_topic(self.id, incarnation)
+        env = self._env(mode, incarnation)
         child = self.sup.launcher.spawn(self.cfg.command, env, self.sup.config.folder,
                                         label=self.id)
-        self.child = child
-        incarnation = self.incarnation
+        current.child = child
         warm = self.standby.spawned(child)
         _logger.info(
             '%s %s: spawned pid %d (incarnation %d, %s, %s)', LOG_PREFIX, self.id, child.pid,
@@ -183,7 +143,7 @@ class ManagedNode:
         def reap() -> None:
             code = child.wait()
             self.sup.events.put(
-                ChildExited(self.id, incarnation, code, self._now(), time.time_ns())
+                ChildExited(self.id, incarnation, code, self.sup.clock(), time.time_ns())
             )
 
         threading.Thread(target=reap, name=f'rory-reap-{self.id}', daemon=True).start()
@@ -197,6 +157,14 @@ class ManagedNode:
         """A checkpoint or a message log of an earlier run is on disk."""
         return bool(self.segments.numbers()) or self.checkpoints.latest_valid() is not None
 
+    def _new_recovery(self, crashed: float, crashed_ns: int, ring: RingPort | None) -> Recovery:
+        self.recovery = Recovery(
+            node_id=self.id, crashed=crashed, crashed_ns=crashed_ns, safety=self.sup.safety,
+            ring=ring, segments=self.segments, checkpoints=self.checkpoints,
+            clock=self.sup.clock,
+        )
+        return self.recovery
+
     def start_resumed(self, down_since: float | None) -> None:
         """First start after a supervisor that died: a recovery from the store (S1-S4).
 
@@ -204,7 +172,7 @@ class ManagedNode:
         disk; what its inputs published while no supervisor ran was recorded by nobody, and
         the event says for how long that was.
         """
-        now = self._now()
+        now = self.sup.clock()
         gap = None if down_since is None else max(0.0, time.time() - down_since)
         self.sup.events_log.write('resumed', self.id, unrecorded_s=gap)
         _logger.warning(
@@ -213,11 +181,7 @@ class ManagedNode:
             '' if gap is None else f' (inputs unrecorded for up to {gap:.1f} s)',
         )
         self.sm.change_state(NodeState.RESTORING, 'resume from the store')
-        rec = Recovery(
-            node_id=self.id, crashed=now, crashed_ns=time.time_ns(), safety=self.sup.safety,
-            ring=None, segments=self.segments, checkpoints=self.checkpoints, clock=self._now,
-        )
-        self.recovery = rec
+        rec = self._new_recovery(now, time.time_ns(), None)
         self.resumed = True
         rec.begin()  # S2 without a ring: it joins at HELLO, once the node has named its inputs
         rec.s3_restart(lambda: self.spawn(Mode.RECOVER))
@@ -228,7 +192,8 @@ class ManagedNode:
             NodeState.STOPPING, NodeState.STOPPED, NodeState.FATAL,
         ):
             return  # (FATAL: a process the supervisor ended when it gave up)
-        self.child = None
+        current = self.current
+        current.child = None
         how = describe_exit(ev.code)
         if self.watchdog.kill_reason is not None:
             how = f'{self.watchdog.kill_reason}, {how}'
@@ -239,11 +204,14 @@ class ManagedNode:
             self._end_recovery()
             self.early.stop(self.ring, 'exited')
             return
-        self.crashes_total += 1
-        ran_for = 0.0 if self.running_since is None else ev.at - self.running_since
-        self.running_since = None
+        self.record.crashes += 1
+        ran_for = 0.0 if current.running_since is None else ev.at - current.running_since
+        current.running_since = None
         was_recovering = self.sm.recovering
-        died_on, quarantined = self._judge_crash(ev)
+        # Did it die applying a message - the same one as last time (poison)?
+        rlog = self.recovery.rlog if self.recovery is not None else None
+        died_on, quarantined = self.poison.judge(
+            ev.incarnation, list(rlog.entries) if rlog is not None else [], self.sup.events_log)
         self.sm.change_state(NodeState.CRASHED, how)
         self._crashed(ev, was_recovering)
         assert self.recovery is not None  # made or carried on by _crashed
@@ -254,7 +222,7 @@ class ManagedNode:
                           crashes=self.policy.consecutive)
             return
         if delay > 0:
-            self.restart_at = self._now() + delay
+            self.restart_at = self.sup.clock() + delay
             self.sm.change_state(NodeState.BACKOFF, f'restart in {delay:.1f} s')
         else:
             self._restart()
@@ -262,10 +230,10 @@ class ManagedNode:
     def _give_up(self, reason: str, **fields: Any) -> None:
         """FATAL: the node is not started again. Giving up leaves the robot in the safe state:
         nothing will drive it back out."""
-        self.fatal_reason = reason
+        self.record.fatal_reason = reason
         self.sm.change_state(NodeState.FATAL, reason)
         self.sup.events_log.write('fatal', self.id, reason=reason, **fields)
-        child, self.child = self.child, None
+        child, self.current.child = self.current.child, None
         if child is not None:  # refused or gated: the process the supervisor will not run
             child.send_signal(signal.SIGKILL)
         self.standby.drop()
@@ -273,25 +241,6 @@ class ManagedNode:
             self.gate.held = None
         if self.recovery is not None:
             self.recovery.give_up()
-
-    def _judge_crash(self, ev: ChildExited) -> tuple[InFlight | None, Quarantined | None]:
-        """Did it die applying a message - the same one as last time (poison)? That message,
-        and its quarantine if it was."""
-        rlog = self.recovery.rlog if self.recovery is not None else None
-        recent = list(rlog.entries) if rlog is not None else []
-        suspect = self.poison.died_on(ev.incarnation)
-        quarantined = self.poison.on_crash(ev.incarnation, recent)
-        if quarantined is not None:
-            self.sup.events_log.write(
-                'quarantined', self.id, topic=quarantined.topic, source_ns=quarantined.ident[0],
-                seq=quarantined.ident[1], path=str(quarantined.path),
-            )
-        elif suspect is not None:
-            self.sup.events_log.write(
-                'died_on', self.id, topic=suspect.topic, source_ns=suspect.ident[0],
-                seq=suspect.ident[1], incarnation=ev.incarnation,
-            )
-        return suspect, quarantined
 
     def _crashed(self, ev: ChildExited, was_recovering: bool) -> None:
         rec = self.recovery
@@ -306,12 +255,7 @@ class ManagedNode:
             rec.stop()
             self.gaps.report(rec)  # also those held back for a switch that never came
         ring = self.ring if self.cfg.method.logs else None
-        rec = Recovery(
-            node_id=self.id, crashed=ev.at, crashed_ns=ev.at_ns, safety=self.sup.safety,
-            ring=ring, segments=self.segments, checkpoints=self.checkpoints, clock=self._now,
-        )
-        self.recovery = rec
-        rec.begin(self.early.take())
+        self._new_recovery(ev.at, ev.at_ns, ring).begin(self.early.take())
 
     def _restart(self) -> None:
         self.restart_at = None
@@ -319,17 +263,17 @@ class ManagedNode:
         assert self.recovery is not None
         self.recovery.s3_restart(lambda: self.spawn(Mode.RECOVER))
 
+    # -- what the process says ----------------------------------------------------------------
+
     def on_status(self, message: StatusMessage) -> None:
         """A status message from this node's runtime."""
         if message.incarnation != self.incarnation:
             return
-        status = message.status
+        status, events = message.status, self.sup.events_log
         if isinstance(status, HelloStatus):
             self._on_hello(status, message)
         elif isinstance(status, SyncedStatus):
-            current = self.current
-            if status.nonce == current.sync_nonce and current.synced_counts is None:
-                current.synced_counts = dict(status.live_publishers)
+            if self.current.synced(status.nonce, status.live_publishers):
                 self._on_synced()
         elif isinstance(status, ReleasedStatus):
             self._on_released(status)
@@ -337,8 +281,7 @@ class ManagedNode:
             gate = self.gate
             if self.sm.state == NodeState.GATED and gate is not None and gate.held is not None:
                 # What the node published while it waited was muted: counted, never sent.
-                self.sup.events_log.write('gate_opened', self.id, reason=gate.reason,
-                                          muted=status.muted)
+                events.write('gate_opened', self.id, reason=gate.reason, muted=status.muted)
                 stats = gate.opened()
                 assert stats is not None
                 self._finish_release(stats)
@@ -350,23 +293,30 @@ class ManagedNode:
                 '%s %s: checkpoint %s (cut %s, %s B, stall %.2f ms)', LOG_PREFIX, self.id,
                 status.seq, status.cut, status.size, float(status.stall_ms),
             )
-            self.watchdog.checkpoint_taken(self._now())
+            self.watchdog.checkpoint_taken(self.sup.clock())
             self.current.checkpoint_error = None
-            self.sup.events_log.write('checkpoint', self.id, **_fields(message))
+            events.write('checkpoint', self.id, **_fields(message))
         elif isinstance(status, SwitchedStatus):
-            self.sup.events_log.write('switched', self.id, topic=status.topic,
-                                      passed_by_relay=list(status.passed_by_relay),
-                                      live_only=list(status.live_only))
+            events.write('switched', self.id, topic=status.topic,
+                         passed_by_relay=list(status.passed_by_relay),
+                         live_only=list(status.live_only))
             if self.recovery is not None and self.recovery.on_switched(status.topic,
                                                                        status.live_only):
                 self._end_recovery()
         elif isinstance(status, InputsStatus):
-            self._on_inputs(status)
+            # The node made a subscription after HELLO: read that topic in the ring too.
+            inputs = list(status.inputs)
+            added = sorted({i.topic for i in inputs} - {i.topic for i in self.inputs})
+            self.inputs = inputs
+            events.write('inputs', self.id, added=added)
+            _logger.info('%s %s: new input(s) %s', LOG_PREFIX, self.id, ', '.join(added))
+            if self.cfg.method.logs and self.ring is not None:
+                self.ring.ensure(self.inputs)
         elif isinstance(status, ErrorStatus):
             if status.checkpoint_failed:  # a checkpoint not taken (Checkpointer.take)
                 self.current.checkpoint_error = status.message
             _logger.error('%s %s: %s', LOG_PREFIX, self.id, status.message)
-            self.sup.events_log.write('error', self.id, message=status.message)
+            events.write('error', self.id, message=status.message)
 
     def _on_hello(self, hello: HelloStatus, message: StatusMessage) -> None:
         """The process started (``message``, all of it, goes to the event log)."""
@@ -389,8 +339,7 @@ class ManagedNode:
                     )
                 self.recovery.join_ring(self.ring)
         if hello.restored is not None:
-            freshness = hello.restored.freshness
-            self.last_freshness = freshness
+            freshness = self.record.freshness = hello.restored.freshness
             if freshness.refused:
                 self._refuse_stale(freshness)
                 return
@@ -408,8 +357,8 @@ class ManagedNode:
                 self.sm.change_state(NodeState.ARMING, 'waiting for RORY readers to match')
             elif self.sm.state == NodeState.RESTORING:
                 self.sm.change_state(NodeState.REPLAYING,
-                                     f'replay after segment {_restored_cut(hello)}')
-            self._send_sync()
+                                     f'replay after segment {self.current.restored_cut()}')
+            self.current.send_sync(self.sup.clock())
 
     def _refuse_stale(self, verdict: Verdict) -> None:
         """A stale variable whose rule is ``refuse``: the node does not run on its checkpoint
@@ -422,69 +371,31 @@ class ManagedNode:
         _logger.error('%s %s: %s', LOG_PREFIX, self.id, reason)
         self._give_up(reason, freshness=verdict.to_json())
 
-    def _on_inputs(self, status: InputsStatus) -> None:
-        """The node made a subscription after HELLO: read that topic in the ring too."""
-        inputs = list(status.inputs)
-        added = sorted({i.topic for i in inputs} - {i.topic for i in self.inputs})
-        self.inputs = inputs
-        self.sup.events_log.write('inputs', self.id, added=added)
-        _logger.info('%s %s: new input(s) %s', LOG_PREFIX, self.id, ', '.join(added))
-        if self.cfg.method.logs and self.ring is not None:
-            self.ring.ensure(self.inputs)
-
-    def _send_sync(self) -> None:
-        self.current.sync_sent = self._now()
-        assert self.replay_pub is not None  # made by spawn()
-        self.replay_pub.publish(protocol.pack_sync(self.incarnation, self.current.sync_nonce))
-
     def _on_synced(self) -> None:
+        current = self.current
         if self.sm.state == NodeState.REPLAYING and self.recovery is not None:
-            assert self.current.hello is not None and self.replay_pub is not None
-            cut = _restored_cut(self.current.hello)
-            incarnation = self.incarnation
+            assert current.hello is not None and current.replay_pub is not None
+            incarnation = current.number
             self.recovery.s3_replay(
-                self.replay_pub, incarnation, cut, self._replay_pace(),
+                current.replay_pub, incarnation, current.restored_cut(),
+                current.replay_pace(self.cfg.replay),
                 lambda sent: self.sup.events.put(Released(self.id, incarnation, sent)),
             )
 
-    def _replay_pace(self) -> ReplayPace:
-        """The supervisor config's pace, else the node's own (keyvars.yaml), else fast.
-
-        Fast is the default since callbacks get the clock readings, ticks, parameter changes
-        and requests they had live (docs/architecture.md, "Timers and the clock"); paced is
-        for nodes that read time RORY cannot replay (docs/keyvars.md).
-        """
-        if self.cfg.replay is not None:
-            return self.cfg.replay
-        wanted = None if self.current.hello is None else self.current.hello.replay
-        return ReplayPace(wanted) if wanted in {p.value for p in ReplayPace} else ReplayPace.FAST
-
-    def _armed(self) -> bool:
-        """The ring matches every publisher the node's own readers have (fresh start)."""
-        if self.current.synced_counts is None or self.ring is None:
-            return False
-        counts = self.ring.publisher_counts()
-        return all(counts.get(t, 0) >= n for t, n in self.current.synced_counts.items())
-
     def _on_released(self, stats: ReleasedStatus) -> None:
-        self.running_since = self._now()
+        self.current.running_since = self.sup.clock()
         recovering = self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING)
         if recovering and self.recovery is not None and self.gate is not None:
-            self._enter_gate(self.gate, stats)
+            # Caught up and live, outputs muted: wait for the release call (or the timeout).
+            gate = self.gate
+            self.sm.change_state(NodeState.GATED, gate.enter(stats))
+            self.sup.events_log.write('gated', self.id, service=gate.service,
+                                      timeout=gate.config.timeout,
+                                      on_timeout=gate.config.on_timeout)
+            if gate.called:
+                gate.open('called before the node had caught up')
             return
         self._finish_release(stats)
-
-    def _enter_gate(self, gate: Gate, stats: ReleasedStatus) -> None:
-        """Caught up and live, outputs muted: wait for the release call (or the timeout)."""
-        self.sm.change_state(NodeState.GATED, gate.enter(stats))
-        self.sup.events_log.write('gated', self.id, service=gate.service,
-                                  timeout=gate.config.timeout, on_timeout=gate.config.on_timeout)
-        if gate.called:
-            gate.open('called before the node had caught up')
-
-    def _publish_open(self) -> None:
-        assert self.replay_pub is not None  # made by spawn()
-        self.replay_pub.publish(protocol.pack_open(self.incarnation))
 
     def on_gate_call(self) -> tuple[bool, str]:
         """A call on the release gate service (main thread): the answer to give."""
@@ -498,40 +409,14 @@ class ManagedNode:
                                                  NodeState.GATED):
             gate_ms, gate_reason = (None, None) if self.gate is None else self.gate.finish()
             timing = rec.s4_release()
-            self.last_recovery = (timing['total_ms'], self._now())
+            self.record.last_recovery = (timing['total_ms'], self.sup.clock())
             self.sm.change_state(NodeState.RUNNING, 'released')
-            gated = '' if gate_ms is None else f'; gated {gate_ms / 1000:.1f} s, {gate_reason}'
-            _logger.info(
-                '%s %s: recovered in %.1f ms (%s; crashes %d; replayed %s, duplicates skipped '
-                '%s%s)', LOG_PREFIX, self.id, timing['total_ms'],
-                ' '.join(f'{k[:-3]}={v:.1f}' for k, v in timing.items() if k != 'total_ms'),
-                rec.crashes, stats.replayed, stats.duplicates, gated,
-            )
-            verdict = self.last_freshness
-            if verdict is not None and self.cfg.method.checkpoints:
-                level = (logging.WARNING if verdict.reset or verdict.kept_stale
-                         else logging.INFO)
-                _logger.log(level, '%s %s: %s', LOG_PREFIX, self.id,
-                            describe_verdict(verdict))
-            pace = self._replay_pace().value if self.cfg.method.logs else None
-            gaps = self.gaps.report(rec)
-            never = rec.never_delivered()
-            for topic, dropped in never.items():
-                _logger.warning(
-                    '%s %s: input %s: %d message(s) (publication seq %s) reached RORY\'s reader '
-                    'but never the node, below what the node had of the same publisher: not '
-                    'replayed, to keep that publisher\'s order (a node that had not crashed '
-                    'never had them either)', LOG_PREFIX, self.id, topic, dropped['count'],
-                    dropped['seqs'])
-            self.sup.events_log.write(
-                'recovered', self.id, method=self.cfg.method.value, crashes=rec.crashes,
-                incarnation=self.incarnation, replay=pace, **timing, **_recovery_counts(stats),
-                input_gaps=[g.to_json() for g in gaps], r_log=rec.r_summary(),
-                never_delivered=never, **rec.poison_summary(),
-                freshness=None if self.last_freshness is None else self.last_freshness.to_json(),
-                gate_ms=gate_ms,
-                gate=gate_reason,
-            )
+            pace = (self.current.replay_pace(self.cfg.replay).value if self.cfg.method.logs
+                    else None)
+            say_recovered(rec, self.id, self.sup.events_log, self.gaps, method=self.cfg.method,
+                          incarnation=self.incarnation, timing=timing, stats=stats, pace=pace,
+                          freshness=self.record.freshness, gate_ms=gate_ms,
+                          gate_reason=gate_reason)
             if rec.ring is None or not rec.ring.active_topics:
                 self._end_recovery()
         elif self.sm.state in (NodeState.STARTING, NodeState.ARMING):
@@ -548,21 +433,24 @@ class ManagedNode:
             self.recovery = None
         self.sup.retire_shadow_topics(self.id)
 
+    # -- time ---------------------------------------------------------------------------------
+
     def health(self, now: float) -> NodeHealth:
         """This node as /diagnostics shows it."""
-        last = self.last_recovery
+        record, child = self.record, self.current.child
+        last = record.last_recovery
         return NodeHealth(
             node=self.id, state=self.sm.state, method=self.cfg.method.value,
-            pid=self.child.pid if self.child is not None else None,
-            incarnation=self.incarnation, crashes=self.crashes_total,
+            pid=child.pid if child is not None else None,
+            incarnation=self.incarnation, crashes=record.crashes,
             last_recovery_ms=last[0] if last else None,
             last_recovery_age_s=age(last[1], now) if last else None,
             last_checkpoint_age_s=age(self.watchdog.last_checkpoint_at, now),
             standby=self.standby.status(),
             checkpoint_overdue_s=self.checkpoint_overdue(now),
             checkpoint_error=self.current.checkpoint_error,
-            fatal_reason=self.fatal_reason,
-            freshness=self.last_freshness if self.cfg.method.checkpoints else None,
+            fatal_reason=record.fatal_reason,
+            freshness=record.freshness if self.cfg.method.checkpoints else None,
             gate_service=self.gate_service if self.cfg.release_gate is not None else None,
         )
 
@@ -570,41 +458,30 @@ class ManagedNode:
         """When it was released, if it runs released (RUNNING) and checkpoints; else None."""
         if self.sm.state != NodeState.RUNNING or not self.cfg.method.checkpoints:
             return None
-        return self.running_since
-
-    def _checkpoint_interval(self) -> float:
-        interval = None if self.current.hello is None else self.current.hello.interval
-        return float(interval or 2.0)
+        return self.current.running_since
 
     def checkpoint_overdue(self, now: float) -> float | None:
         """Seconds past the time a running node must have checkpointed by, if it is late
         (``Watchdog.checkpoint_overdue``)."""
         return self.watchdog.checkpoint_overdue(now, self._checkpointing_since(),
-                                                self._checkpoint_interval())
+                                                self.current.checkpoint_interval())
 
     def tick(self, now: float) -> None:
         """Time-driven work: hang detection, SYNC resends, arming, backoff expiry, standby."""
-        state = self.sm.state
+        state, current = self.sm.state, self.current
         if state in _LIVE:
             self._watch(now)
         overdue = self.watchdog.overdue_news(now, self._checkpointing_since(),
-                                             self._checkpoint_interval())
+                                             current.checkpoint_interval())
         if overdue is not None:
-            age_s = overdue.since_s
-            _logger.warning(
-                '%s %s: no checkpoint for %s: the interval follows the node\'s ROS time (under '
-                'use_sim_time, is /clock advancing?), or its checkpoints fail (see its errors); '
-                'a crash now loses more', LOG_PREFIX, self.id,
-                'the whole run' if age_s is None else f'{age_s:.1f} s')
-            self.sup.events_log.write('checkpoints_overdue', self.id,
-                                      since_s=None if age_s is None else round(age_s, 1))
+            say_overdue(self.id, overdue, self.sup.events_log)
         if state == NodeState.RUNNING and self.recovery is not None:
             # Released, still relaying until every topic is live again: a gap the relay shows
             # (a message lost between R and the live reader) is said now, not only at the end
             # of a handover that may never end (a topic whose publisher stops).
             self.gaps.report(self.recovery)
         if state == NodeState.RUNNING and self.standby.due(now, self.incarnation,
-                                                          self.running_since):
+                                                          current.running_since):
             self.standby.prepare(now, self.incarnation)
         if state == NodeState.GATED and self.gate is not None:
             given_up = self.gate.tick(now)
@@ -613,18 +490,15 @@ class ManagedNode:
         if state == NodeState.BACKOFF and self.restart_at is not None and now >= self.restart_at:
             self._restart()
         elif state in (NodeState.ARMING, NodeState.REPLAYING):
-            if self.current.synced_counts is None and now - self.current.sync_sent >= SYNC_PERIOD:
-                self._send_sync()
-            elif state == NodeState.ARMING and not self.current.release_sent and self._armed():
-                self.current.release_sent = True  # once; the node answers RELEASED
-                assert self.replay_pub is not None  # made by spawn()
-                self.replay_pub.publish(
-                    protocol.pack_release(self.incarnation, self.segments.next_number(), 0)
-                )
+            if current.synced_counts is None and now - current.sync_sent >= SYNC_PERIOD:
+                current.send_sync(self.sup.clock())
+            elif (state == NodeState.ARMING and not current.release_sent
+                  and current.armed(self.ring)):
+                current.send_release(self.segments.next_number())  # once; RELEASED answers
 
     def _watch(self, now: float) -> None:
         """Crash detection beyond exit codes: act on what the watchdog finds."""
-        child = self.child
+        child = self.current.child
         if child is None:
             return
         for finding in self.watchdog.check(now, heard=self.current.hello is not None):
@@ -635,41 +509,18 @@ class ManagedNode:
                         and self.recovery is None):
                     self.early.on_beat(ring, finding)
             elif isinstance(finding, Hung):
-                self._on_hung(child, finding)
+                # Say what it was doing. SIGUSR1 for a heartbeat that stopped: faulthandler in
+                # the node prints every thread's stack, where it hung, and SIGKILL follows
+                # (KillDue). SIGKILL at once for a process that never beat.
+                say_hung(self.id, self.incarnation, child.pid, finding,
+                         self.poison.died_on(self.incarnation), self.sup.events_log)
+                child.send_signal(finding.signal)
             elif isinstance(finding, Unheard):
-                self._on_unheard(child, finding)
+                # The process runs but its HELLO never arrived: replace it (a crash, recovered).
+                say_unheard(self.id, self.incarnation, child.pid, finding, self.sup.events_log)
+                child.send_signal(signal.SIGKILL)
             else:  # KillDue: the hung process has printed its stacks
                 child.send_signal(signal.SIGKILL)
-
-    def _on_hung(self, child: Child, hung: Hung) -> None:
-        """No first beat, or no beat for hang_timeout: say what it was doing, signal it."""
-        busy = self.poison.died_on(self.incarnation)
-        on = f' while applying {busy.topic} {busy.ident}' if busy is not None else ''
-        _logger.error(
-            '%s %s: hung: no %s for %.1f s (limit %.1f s)%s; killing pid %d', LOG_PREFIX,
-            self.id, hung.waiting_for, hung.stalled_s, hung.limit_s, on, child.pid,
-        )
-        self.sup.events_log.write(
-            'hang', self.id, incarnation=self.incarnation,
-            stalled_s=round(hung.stalled_s, 3),
-            waiting_for=hung.waiting_for, topic=busy.topic if busy else None,
-            source_ns=busy.ident[0] if busy else None, seq=busy.ident[1] if busy else None,
-        )
-        # SIGUSR1 for a heartbeat that stopped: faulthandler in the node prints every
-        # thread's stack, where it hung, and SIGKILL follows (KillDue). SIGKILL at once for a
-        # process that never beat: it has no stack worth printing.
-        child.send_signal(hung.signal)
-
-    def _on_unheard(self, child: Child, unheard: Unheard) -> None:
-        """The process runs but its HELLO never arrived: replace it (a crash, recovered)."""
-        _logger.error(
-            '%s %s: pid %d has run %.1f s without its HELLO reaching the supervisor (its '
-            'status publisher was never discovered); replacing it', LOG_PREFIX, self.id,
-            child.pid, unheard.beating_s,
-        )
-        self.sup.events_log.write('unheard', self.id, incarnation=self.incarnation,
-                                  beating_s=round(unheard.beating_s, 3))
-        child.send_signal(signal.SIGKILL)
 
     def stop(self) -> None:
         """Stop the node's process: SIGINT, then SIGTERM, then SIGKILL."""
@@ -681,18 +532,9 @@ class ManagedNode:
             # The safe state stays as it is: held if the node had not been released.
             self.recovery.stop()
             self.gaps.report(self.recovery)  # after stop: none is held back any more
-        child = self.child
-        if child is not None:
-            for sig, grace in zip(
-                (signal.SIGINT, signal.SIGTERM, signal.SIGKILL), (*STOP_GRACE, 5.0), strict=True
-            ):
-                child.send_signal(sig)
-                try:
-                    child.wait(timeout=grace)
-                    break
-                except Exception:
-                    continue
-        self.child = None
+        if self.current.child is not None:
+            stop_child(self.current.child)
+        self.current.child = None
         self.sm.change_state(NodeState.STOPPED)
 
 
@@ -700,17 +542,3 @@ def _fields(message: StatusMessage) -> dict[str, Any]:
     """What a status carries but its kind and node, as it travelled: the fields of the
     ``hello`` and ``checkpoint`` events."""
     return {k: v for k, v in message.to_json().items() if k not in ('kind', 'node')}
-
-
-def _restored_cut(hello: HelloStatus) -> int | None:
-    """The last log segment the restored checkpoint holds: replay starts after it."""
-    return None if hello.restored is None else hello.restored.cut
-
-
-def _recovery_counts(stats: ReleasedStatus) -> dict[str, int]:
-    """The node's counters the ``recovered`` event carries."""
-    return {'applied': stats.applied, 'replayed': stats.replayed,
-            'duplicates': stats.duplicates, 'muted': stats.muted,
-            'ticks_replayed': stats.ticks_replayed, 'clock_fallbacks': stats.clock_fallbacks,
-            'parameter_changes_replayed': stats.parameter_changes_replayed,
-            'requests_replayed': stats.requests_replayed}

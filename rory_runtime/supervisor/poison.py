@@ -29,6 +29,7 @@ from ..inflight import InFlight, read_slot, slot_path
 from ..log import LogEntry, SegmentStore
 from ..protocol import MessageId
 from ..store import CheckpointStore
+from .ports import EventSink
 from .states import LOG_PREFIX
 
 _logger = logging.getLogger('rory.supervisor')
@@ -91,6 +92,25 @@ class PoisonGuard:
         if inflight is None or inflight.incarnation != incarnation:
             return None
         return inflight
+
+    def judge(self, incarnation: int, recent: Iterable[LogEntry],
+              events: EventSink) -> tuple[InFlight | None, Quarantined | None]:
+        """Did the process die applying a message - the same one as last time (poison)? That
+        message, and its quarantine if it was (the ``quarantined`` or ``died_on`` event)."""
+        suspect = self.died_on(incarnation)
+        quarantined = self.on_crash(incarnation, recent)
+        if quarantined is not None:
+            events.write(
+                'quarantined', self.node_id, topic=quarantined.topic,
+                source_ns=quarantined.ident[0], seq=quarantined.ident[1],
+                path=str(quarantined.path),
+            )
+        elif suspect is not None:
+            events.write(
+                'died_on', self.node_id, topic=suspect.topic, source_ns=suspect.ident[0],
+                seq=suspect.ident[1], incarnation=incarnation,
+            )
+        return suspect, quarantined
 
     def on_crash(self, incarnation: int, recent: Iterable[LogEntry] = ()) -> Quarantined | None:
         """Judge a crash; quarantine the message if it killed the node twice in a row.

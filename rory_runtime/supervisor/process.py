@@ -16,9 +16,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Protocol
 
-from .config import Backoff
+from .. import protocol
+from ..dds import node_profile_env
+from ..protocol import Mode
+from .config import Backoff, NodeConfig
 
 _PR_SET_PDEATHSIG = 1
+
+STOP_GRACE = (3.0, 2.0)
+"""Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
 
 
 class Child(Protocol):
@@ -172,3 +178,50 @@ class RestartPolicy:
         if self.consecutive == 1:
             return self.backoff.initial
         return float(min(self.backoff.maximum, self.backoff.step * 2 ** (self.consecutive - 2)))
+
+
+def node_environment(cfg: NodeConfig, mode: Mode, incarnation: int, *, store: Path,
+                     quarantine: str, secret: bytes, channel: str,
+                     status_address: str) -> dict[str, str]:
+    """The environment of one process of a node: the supervisor's own, the node's ``env``, and
+    what its runtime reads (``protocol.ENV_*``: who it is, where its store and supervisor are,
+    how it starts)."""
+    env = dict(os.environ)
+    env.update(cfg.env)
+    env.update(
+        {
+            protocol.ENV_NODE: cfg.name,
+            protocol.ENV_STORE: str(store),
+            protocol.ENV_INCARNATION: str(incarnation),
+            protocol.ENV_METHOD: cfg.method.value,
+            protocol.ENV_MODE: mode.value,
+            protocol.ENV_QUARANTINE: quarantine,
+            protocol.ENV_SECRET: secret.hex(),
+            protocol.ENV_CHANNEL: channel,
+            protocol.ENV_STATUS: status_address,
+            'PYTHONUNBUFFERED': '1',
+        }
+    )
+    env.update(node_profile_env(env))  # a cold node's discovery: rory_runtime/dds
+    if cfg.checkpoint_interval is not None:
+        env[protocol.ENV_INTERVAL] = repr(cfg.checkpoint_interval)
+    else:
+        env.pop(protocol.ENV_INTERVAL, None)
+    if mode == Mode.RECOVER and cfg.release_gate is not None:
+        env[protocol.ENV_GATED] = '1'
+    else:
+        env.pop(protocol.ENV_GATED, None)
+    return env
+
+
+def stop_child(child: Child) -> None:
+    """Stop a node's process: SIGINT, then SIGTERM, then SIGKILL (:data:`STOP_GRACE`)."""
+    for sig, grace in zip(
+        (signal.SIGINT, signal.SIGTERM, signal.SIGKILL), (*STOP_GRACE, 5.0), strict=True
+    ):
+        child.send_signal(sig)
+        try:
+            child.wait(timeout=grace)
+            break
+        except Exception:
+            continue

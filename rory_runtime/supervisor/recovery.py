@@ -45,12 +45,16 @@ from rosbags.interfaces import Qos
 
 from .. import protocol
 from ..errors import LogError
+from ..freshness import Verdict as Freshness
+from ..freshness import describe as describe_freshness
 from ..inflight import InFlight
 from ..log import LogEntry, SegmentStore, SegmentWriter
 from ..protocol import (
     FLAG_RELAY,
     RELAY_KEEPALIVE_S,
     MessageId,
+    Method,
+    ReleasedStatus,
     ReplayPace,
     pack_alive,
     pack_msg,
@@ -732,3 +736,50 @@ class GapReports:
                 gap.missing, gap.first, gap.last)
             self._events.write('input_gap', self.node_id, **gap.to_json())
         return new
+
+
+def recovery_counts(stats: ReleasedStatus) -> dict[str, int]:
+    """The node's counters the ``recovered`` event carries."""
+    return {'applied': stats.applied, 'replayed': stats.replayed,
+            'duplicates': stats.duplicates, 'muted': stats.muted,
+            'ticks_replayed': stats.ticks_replayed, 'clock_fallbacks': stats.clock_fallbacks,
+            'parameter_changes_replayed': stats.parameter_changes_replayed,
+            'requests_replayed': stats.requests_replayed}
+
+
+def say_recovered(rec: Recovery, node_id: str, events: EventSink, gaps: GapReports, *,
+                  method: Method, incarnation: int, timing: dict[str, float],
+                  stats: ReleasedStatus, pace: str | None, freshness: Freshness | None,
+                  gate_ms: float | None, gate_reason: str | None) -> None:
+    """S4 done (``timing``: :meth:`Recovery.s4_release`): the log lines (the recovery, what the
+    restore did with the key variables, input gaps, messages never delivered) and the
+    ``recovered`` event."""
+    gated = '' if gate_ms is None else f'; gated {gate_ms / 1000:.1f} s, {gate_reason}'
+    _logger.info(
+        '%s %s: recovered in %.1f ms (%s; crashes %d; replayed %s, duplicates skipped '
+        '%s%s)', LOG_PREFIX, node_id, timing['total_ms'],
+        ' '.join(f'{k[:-3]}={v:.1f}' for k, v in timing.items() if k != 'total_ms'),
+        rec.crashes, stats.replayed, stats.duplicates, gated,
+    )
+    if freshness is not None and method.checkpoints:
+        level = (logging.WARNING if freshness.reset or freshness.kept_stale
+                 else logging.INFO)
+        _logger.log(level, '%s %s: %s', LOG_PREFIX, node_id, describe_freshness(freshness))
+    new_gaps = gaps.report(rec)
+    never = rec.never_delivered()
+    for topic, dropped in never.items():
+        _logger.warning(
+            '%s %s: input %s: %d message(s) (publication seq %s) reached RORY\'s reader '
+            'but never the node, below what the node had of the same publisher: not '
+            'replayed, to keep that publisher\'s order (a node that had not crashed '
+            'never had them either)', LOG_PREFIX, node_id, topic, dropped['count'],
+            dropped['seqs'])
+    events.write(
+        'recovered', node_id, method=method.value, crashes=rec.crashes,
+        incarnation=incarnation, replay=pace, **timing, **recovery_counts(stats),
+        input_gaps=[g.to_json() for g in new_gaps], r_log=rec.r_summary(),
+        never_delivered=never, **rec.poison_summary(),
+        freshness=None if freshness is None else freshness.to_json(),
+        gate_ms=gate_ms,
+        gate=gate_reason,
+    )

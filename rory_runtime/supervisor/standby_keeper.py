@@ -64,16 +64,12 @@ class StandbyKeeper:
                                        incarnation=incarnation)
 
     def _pool_full(self) -> bool:
-        """The pool this command starts from holds its size in live standbys, so the launcher's
-        ``prepare`` would start nothing (a few microseconds: it builds no environment and
-        computes no init signature). A launcher without a pool is never full."""
-        launcher = self._sup.launcher
-        standbys = getattr(launcher, 'standbys', None)
-        size = getattr(launcher, 'pool_size', None)
-        if standbys is None or not isinstance(size, int):
-            return False
-        waiting = standbys(self._cfg.command, self._sup.config.folder)
-        return len(waiting) >= size and all(s.child.poll() is None for s in waiting)
+        """The launcher's pool for this command holds all its standbys and spares, alive
+        (``ForkLauncher.full``), so ``prepare`` would start nothing: a few microseconds, where
+        ``prepare`` builds the environment and computes the init signature first. A launcher
+        without a pool is never full."""
+        full = getattr(self._sup.launcher, 'full', None)
+        return bool(full(self._cfg.command, self._sup.config.folder)) if full else False
 
     def spawned(self, child: Child) -> bool:
         """A new process of the node started: whether from a standby (warm); a node that had

@@ -5,18 +5,25 @@ A node's runtime writes the steady clock into its in-flight slot every 0.2 s (``
 supervisor's clock (``ports.py``), and says what it finds: a process that never beats within
 ``start_timeout``, one that stops beating for ``hang_timeout``, one whose heartbeat is late
 enough to be a hang in the making, one that beats but whose HELLO never reached the supervisor.
-It decides; ``ManagedNode`` acts (signals the process, keeps its inputs, logs): the findings are
-values it gets back from :meth:`Watchdog.check` (docs/architecture.md, "Heartbeat" and "At a
-crash: S1-S4").
+It decides; ``ManagedNode`` acts (signals the process, keeps its inputs; :func:`say_hung` and
+the others below log): the findings are values it gets back from :meth:`Watchdog.check`
+(docs/architecture.md, "Heartbeat" and "At a crash: S1-S4").
 """
 
 from __future__ import annotations
 
+import logging
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
+
+from ..inflight import InFlight
+from .ports import EventSink
+from .states import LOG_PREFIX
+
+_logger = logging.getLogger('rory.supervisor')
 
 HELLO_TIMEOUT = 10.0
 """Seconds a new process may beat without its HELLO reaching the supervisor, by default (a
@@ -124,6 +131,11 @@ class Watchdog:
         self._process = _Watched(0)
         self.last_checkpoint_at: float | None = None  # the clock's seconds, any process
 
+    @property
+    def slot(self) -> Path:
+        """The node's in-flight slot, where its heartbeat is read."""
+        return self._slot
+
     def _now_ns(self) -> int:
         return int(self._clock() * 1e9)
 
@@ -224,3 +236,47 @@ class Watchdog:
         self._process.overdue_said = True
         last = self.last_checkpoint_at
         return CheckpointsOverdue(None if last is None else now - last)
+
+
+# -- what the supervisor says of its findings (ManagedNode signals the process) -----------------
+
+
+def say_hung(node_id: str, incarnation: int, pid: int, hung: Hung, busy: InFlight | None,
+             events: EventSink) -> None:
+    """No first beat, or no beat for hang_timeout: what it was doing (``busy``: the message it
+    was applying, if any), as an error and the ``hang`` event."""
+    on = f' while applying {busy.topic} {busy.ident}' if busy is not None else ''
+    _logger.error(
+        '%s %s: hung: no %s for %.1f s (limit %.1f s)%s; killing pid %d', LOG_PREFIX,
+        node_id, hung.waiting_for, hung.stalled_s, hung.limit_s, on, pid,
+    )
+    events.write(
+        'hang', node_id, incarnation=incarnation,
+        stalled_s=round(hung.stalled_s, 3),
+        waiting_for=hung.waiting_for, topic=busy.topic if busy else None,
+        source_ns=busy.ident[0] if busy else None, seq=busy.ident[1] if busy else None,
+    )
+
+
+def say_unheard(node_id: str, incarnation: int, pid: int, unheard: Unheard,
+                events: EventSink) -> None:
+    """The process runs but its HELLO never arrived: it is replaced (a crash, recovered)."""
+    _logger.error(
+        '%s %s: pid %d has run %.1f s without its HELLO reaching the supervisor (its '
+        'status publisher was never discovered); replacing it', LOG_PREFIX, node_id,
+        pid, unheard.beating_s,
+    )
+    events.write('unheard', node_id, incarnation=incarnation,
+                 beating_s=round(unheard.beating_s, 3))
+
+
+def say_overdue(node_id: str, overdue: CheckpointsOverdue, events: EventSink) -> None:
+    """A running node's checkpoints are overdue: a warning and ``checkpoints_overdue``."""
+    age_s = overdue.since_s
+    _logger.warning(
+        '%s %s: no checkpoint for %s: the interval follows the node\'s ROS time (under '
+        'use_sim_time, is /clock advancing?), or its checkpoints fail (see its errors); '
+        'a crash now loses more', LOG_PREFIX, node_id,
+        'the whole run' if age_s is None else f'{age_s:.1f} s')
+    events.write('checkpoints_overdue', node_id,
+                 since_s=None if age_s is None else round(age_s, 1))

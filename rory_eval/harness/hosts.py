@@ -22,6 +22,9 @@ What DDS needs across these hosts (measured here, Fast DDS from the Jazzy wheels
   namespaces, and discovery across the link works). Not needing a route also keeps
   :meth:`Hosts.link_up` simple: ``ip link set ... down`` flushes routes added by hand.
 
+No process starts before every host's interface runs (:meth:`Hosts.wait_running`): Fast DDS
+lists a host's interfaces when a participant is made, and leaves out one not yet running.
+
 Every process is started through ``ip netns exec``, which execs the command: the pid is the
 program's own. Leaving the :class:`Hosts` context (also on an exception) stops every process
 started through it, kills whatever else still runs inside the namespaces (a supervisor's
@@ -158,6 +161,35 @@ class Hosts:
         for host in self.hosts:
             _ip('-n', host.netns, 'addr', 'add', f'{host.address}/24', 'dev', host.device)
             _ip('-n', host.netns, 'link', 'set', host.device, 'up')
+        self.wait_running()
+
+    def running(self, host: Host) -> bool:
+        """Whether ``host``'s interface is operationally up (IFF_RUNNING, as getifaddrs says)."""
+        shown = _ip('-j', '-n', host.netns, 'link', 'show', host.device, check=False).stdout
+        try:
+            return bool(json.loads(shown)[0].get('operstate') == 'UP')
+        except (ValueError, IndexError, KeyError):
+            return False
+
+    def wait_running(self, timeout: float = 5.0) -> None:
+        """Return once every host's interface is operationally up; RuntimeError after ``timeout``.
+
+        ``ip link set up`` returns before the kernel marks the link running (the carrier is
+        reported by the kernel's linkwatch worker, measured 4-126 ms later here), and Fast DDS
+        lists a host's interfaces when a participant is created, leaving out those not running:
+        a participant made in a namespace whose veth had never had carrier sent its
+        announcements on 127.0.0.1 only, and still did 3 s after the carrier came (captured
+        with tcpdump). So no process starts in a host before its link runs.
+        """
+        deadline = time.monotonic() + timeout
+        waiting = list(self.hosts)
+        while waiting:
+            waiting = [host for host in waiting if not self.running(host)]
+            if waiting and time.monotonic() > deadline:
+                raise RuntimeError(
+                    f'link not running after {timeout:g} s: {[h.netns for h in waiting]}')
+            if waiting:
+                time.sleep(0.005)
 
     def close(self) -> None:
         """Stop every process, kill what else runs in the namespaces, delete them (idempotent).

@@ -186,3 +186,13 @@ def test_link_outage_longer_than_the_lease_loses_only_what_never_arrived_and_say
     assert 'never reached this host' in run.result.log
     # The relay said it was alive while its ring got nothing: the node never took it for dead.
     assert 'no relay for /numbers' not in run.result.log
+
+
+def test_hosts_links_run_when_made(hosts: Hosts) -> None:
+    # Hosts returns only once each interface runs: no process of a test starts before.
+    assert all(hosts.running(host) for host in hosts.hosts)
+    hosts.link_down(hosts['b'])  # a loses its carrier too
+    assert not hosts.running(hosts['a'])
+    hosts.link_up(hosts['b'])
+    hosts.wait_running()
+    assert all(hosts.running(host) for host in hosts.hosts)

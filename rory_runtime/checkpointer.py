@@ -112,7 +112,7 @@ class Checkpointer:
         self.segments = segments
         self._failed = failed or (lambda message, _why: error(message))
         self._status = status
-        self._timers = timers
+        self.timers = timers
         self.writer: SegmentWriter | None = None
         self.next_segment = 1
         self.previous_cut: int | None = None
@@ -194,7 +194,7 @@ class Checkpointer:
             window_copy = {topic: w.snapshot() for topic, w in windows.items()}
             parameters = node_parameters.snapshot(node)
             lifecycle = node_lifecycle.state_of(node)
-            timers = b'' if self._timers is None else self._timers(node)
+            timers = b'' if self.timers is None else self.timers(node)
             taken_on = node_clock_reading(node)
             prune_through, self.previous_cut = self.previous_cut, cut
             seq, self._next_seq = self._next_seq, self._next_seq + 1

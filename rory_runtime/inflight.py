@@ -20,12 +20,15 @@ Layout (little endian, 256 bytes)::
 
 from __future__ import annotations
 
+import functools
 import mmap
 import os
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 from .fsutil import make_private_dir
 from .protocol import MessageId
@@ -55,6 +58,26 @@ def slot_path(store: Path, node_id: str) -> Path:
 
 
 _IDLE = _HEAD.pack(_MAGIC, _VERSION, 0, 0, 0, 0, 0, 0)[:8]  # the slot's first 8 bytes, idle
+_IDLE_AT = slice(0, len(_IDLE))
+_HEAD_AT = slice(0, _HEAD.size)
+
+
+class SlotWrites(NamedTuple):
+    """What :meth:`InFlightSlot.busy` and :meth:`InFlightSlot.idle` write for one topic's
+    messages, for a caller that writes it itself: the applier's hot path (applier.py), where
+    two method calls fewer per message are worth it. The layout stays this module's.
+
+    Busy: ``map[name_at] = name; map[head_at] = head(seq, source_ns, recv_ns)``; idle:
+    ``map[idle_at] = idle``.
+    """
+
+    map: mmap.mmap
+    name_at: slice
+    name: bytes
+    head_at: slice
+    head: Callable[[int, int, int], bytes]  # the header, busy, of (seq, source_ns, recv_ns)
+    idle_at: slice
+    idle: bytes
 
 
 class InFlightSlot:
@@ -83,6 +106,13 @@ class InFlightSlot:
         self._map[: _HEAD.size] = _HEAD.pack(
             _MAGIC, _VERSION, 1, len(name), self._incarnation, ident[1], ident[0], recv_ns
         )
+
+    def writes(self, topic: str) -> SlotWrites:
+        """What :meth:`busy` and :meth:`idle` write for ``topic``'s messages (made once)."""
+        name = topic.encode()[:_TOPIC_MAX]
+        head = functools.partial(_HEAD.pack, _MAGIC, _VERSION, 1, len(name), self._incarnation)
+        return SlotWrites(self._map, slice(_HEAD.size, _HEAD.size + len(name)), name, _HEAD_AT,
+                          head, _IDLE_AT, _IDLE)
 
     def idle(self) -> None:
         """No callback is running on a message."""

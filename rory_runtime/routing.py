@@ -12,9 +12,12 @@ refuses any change not in :data:`PHASE_EDGES`::
 
 A topic the node subscribes to after release starts LIVE.
 
-The :class:`Router` holds that state and decides; the runtime core (runtime.py) applies each
-message under its lock (``NodeRuntime._apply``), writes it ahead to the log and replays the
-other logged events (ticks, requests, parameter changes).
+The :class:`Router` holds that state and decides; the applier (applier.py) applies each
+message under the runtime's lock, written ahead to the log; the output gate (gating.py) finds
+what the other logged events (ticks, requests, parameter changes) name, and the applier runs
+them again. A topic's subscription delivers to the router until the topic is LIVE; from then on
+it delivers straight to the applier (:meth:`Applier.live_path`), so a live message runs through
+one function of RORY's before the user's callback.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from rclpy.subscription import Subscription
 from rclpy.type_support import check_for_type_support
 
 from . import protocol
+from .applier import LiveCallback, Window
 from .errors import RoryError
 from .event_clock import Reading
 from .msgtypes import type_name_of
@@ -79,9 +83,8 @@ PHASE_EDGES: Final[dict[TopicPhase, frozenset[TopicPhase]]] = {
 
 _FROM_SHADOW: Final = frozenset({P.SHADOW, P.HANDOVER})
 
-# Bound once for on_live, which runs per message: a member read through its enum class goes
-# through the enum's metaclass, a module global does not.
-_LIVE: Final = P.LIVE
+# Bound once for on_live and the live-only scan, which run per message: a member read through
+# its enum class goes through the enum's metaclass, a module global does not.
 _HANDOVER: Final = P.HANDOVER
 
 # Logged events other than messages: the runtime core runs them again.
@@ -104,35 +107,6 @@ def transition(topic: str, old: TopicPhase, new: TopicPhase) -> TopicPhase:
     return new
 
 
-class Window:
-    """Identities of the last messages applied on one topic."""
-
-    __slots__ = ('_order', '_set')
-
-    def __init__(self, size: int, items: Iterable[MessageId] = ()) -> None:
-        self._order: deque[MessageId] = deque(maxlen=size)
-        self._set: set[MessageId] = set()
-        for item in items:
-            self.add(item)
-
-    def __contains__(self, ident: MessageId) -> bool:
-        return ident in self._set
-
-    def add(self, ident: MessageId) -> None:
-        if len(self._order) == self._order.maxlen:
-            self._set.discard(self._order[0])
-        self._order.append(ident)
-        self._set.add(ident)
-
-    def snapshot(self) -> list[tuple[int, int]]:
-        return list(self._order)
-
-    @property
-    def newest(self) -> MessageId | None:
-        """The identity applied last (None: none yet)."""
-        return self._order[-1] if self._order else None
-
-
 @dataclass
 class Input:
     """One subscription of the user's node."""
@@ -146,6 +120,8 @@ class Input:
     user_raw: bool
     spec: InputSpec
     phase: TopicPhase
+    # The subscription's callback once the topic is LIVE (Applier.live_path; made then).
+    live: LiveCallback | None = None
 
 
 @dataclass
@@ -158,13 +134,25 @@ class _HandoverEvidence:
     waiting_ns: int = 0
 
 
-class Apply(Protocol):
-    """Runs the user's callback on one message under the runtime's lock (``NodeRuntime._apply``):
-    ``log``, a live message written ahead to the log; else a replayed one with its clock
-    ``readings``."""
+class Applying(Protocol):
+    """What the router hands messages to (``Applier``, applier.py): it applies them under the
+    runtime's lock, and holds what decides whether one is applied at all."""
 
-    def __call__(self, inp: Input, raw: bytes, info: dict[str, Any], ident: MessageId,
-                 readings: Iterable[Reading] = (), *, log: bool) -> None: ...
+    lock: threading.RLock
+    # Per topic, the identities applied last (applying adds to them; a restore sets them).
+    windows: dict[str, Window]
+    # The counters reported to the supervisor (duplicates, replayed, quarantined, ...).
+    stats: dict[str, int]
+    # Poison messages the supervisor set aside: never applied again.
+    quarantined: frozenset[tuple[str, MessageId]]
+
+    def apply(self, inp: Input, raw: bytes, info: dict[str, Any], ident: MessageId,
+              readings: Iterable[Reading] = (), *, log: bool) -> None:
+        """Run the user's callback on one message: ``log``, a live message written ahead to
+        the log; else a replayed one with its clock ``readings``."""
+
+    def live_path(self, inp: Input) -> LiveCallback:
+        """The subscription's callback for a LIVE topic: applies each message it delivers."""
 
 
 def _wants_info(callback: Callable[..., Any]) -> bool:
@@ -186,32 +174,23 @@ class Router:
 
     Args:
         recovering: Topics start on the shadow topic (a recovery with a log to replay).
-        quarantined: Poison messages the supervisor set aside: never applied again.
-        lock: The runtime's lock, under which every user callback runs.
-        windows: Per topic, the identities applied last (the runtime's: applying adds to them,
-            checkpoints copy them, a restore sets them); what they hold is skipped.
-        stats: The runtime's counters (duplicates, replayed, quarantined, passed_by_relay).
-        apply: Runs the user's callback on one message (``NodeRuntime._apply``).
+        applier: Applies messages (applier.py); its windows, counters and quarantine decide
+            what is skipped.
         replay_event: Runs a logged tick, request or parameter change again, with the clock
-            readings it took live.
+            readings it took live (``OutputGate.replay_event``).
         error: Reports an error (the runtime's ERROR status).
         status: Sends a status to the supervisor (SWITCHED).
         clock: Wall-clock nanoseconds, for the relay's silence (tests give their own).
     """
 
     def __init__(
-        self, *, recovering: bool, quarantined: frozenset[tuple[str, MessageId]],
-        lock: threading.RLock, windows: dict[str, Window], stats: dict[str, int], apply: Apply,
+        self, *, recovering: bool, applier: Applying,
         replay_event: Callable[[protocol.Msg, list[Reading]], None],
         error: Callable[[str], None], status: Callable[[Status], None],
         clock: Callable[[], int] = time.time_ns,
     ) -> None:
         self._recovering = recovering
-        self._quarantined = quarantined
-        self.lock = lock
-        self.windows = windows
-        self.stats = stats
-        self._apply = apply
+        self.applier = applier
         self._replay_event = replay_event
         self._error = error
         self._status = status
@@ -271,7 +250,7 @@ class Router:
         if inspect.iscoroutinefunction(callback):
             raise RoryError(f'async subscription callbacks are not supported yet ({topic})')
         msg_type = cast(type, sub.msg_type)
-        check_for_type_support(msg_type)  # once: NodeRuntime._apply deserialises without it
+        check_for_type_support(msg_type)  # once: the applier deserialises without it
         type_name = type_name_of(msg_type)
         if released:
             phase = TopicPhase.LIVE
@@ -289,27 +268,35 @@ class Router:
             phase=phase,
         )
         self.inputs[topic] = inp
-        self.windows.setdefault(topic, Window(protocol.window_size(inp.spec)))
+        self.applier.windows.setdefault(topic, Window(protocol.window_size(inp.spec)))
         self.pending_live.setdefault(topic, [])
         sub.raw = True
-        on_live = self.on_live
+        if phase is TopicPhase.LIVE:
+            self._deliver_live(inp)
+        else:
+            on_live = self.on_live
 
-        # A function, not a functools.partial: rclpy's executor asks
-        # inspect.iscoroutinefunction of the callback at every message, which is cheapest
-        # for a plain function.
-        def deliver(raw: bytes, info: dict[str, Any]) -> None:
-            on_live(inp, raw, info)
+            # A function, not a functools.partial: rclpy's executor asks
+            # inspect.iscoroutinefunction of the callback at every message, which is cheapest
+            # for a plain function.
+            def deliver(raw: bytes, info: dict[str, Any]) -> None:
+                on_live(inp, raw, info)
 
-        sub.callback = deliver
+            sub.callback = deliver
         for msg in self.orphans.pop(topic, []):
             self.from_shadow(msg)
         return inp
 
+    def _deliver_live(self, inp: Input) -> None:
+        """The topic is LIVE: its subscription delivers straight to the applier from now on."""
+        inp.live = self.applier.live_path(inp)
+        inp.sub.callback = inp.live
+
     def _is_quarantined(self, topic: str, ident: MessageId) -> bool:
         # A poison message the supervisor set aside: never applied again, by replay or by a
         # transient-local publisher re-sending it.
-        if (topic, ident) in self._quarantined:
-            self.stats['quarantined'] += 1
+        if (topic, ident) in self.applier.quarantined:
+            self.applier.stats['quarantined'] += 1
             return True
         return False
 
@@ -340,8 +327,8 @@ class Router:
             self._apply_live_only(inp, msg.ident)
         if self._is_quarantined(msg.topic, msg.ident):
             pass
-        elif msg.ident in self.windows[msg.topic]:
-            self.stats['duplicates'] += 1
+        elif msg.ident in self.applier.windows[msg.topic]:
+            self.applier.stats['duplicates'] += 1
         else:
             info = {
                 'source_timestamp': msg.source_ns,
@@ -351,8 +338,8 @@ class Router:
             }
             # Before release every replayed message is already in a sealed segment; relayed
             # ones are not, so the node logs them as it would a live message.
-            self._apply(inp, msg.data, info, msg.ident, readings, log=relayed)
-            self.stats['replayed'] += 1
+            self.applier.apply(inp, msg.data, info, msg.ident, readings, log=relayed)
+            self.applier.stats['replayed'] += 1
         if relayed:
             self._maybe_switch(msg.topic)
 
@@ -363,28 +350,23 @@ class Router:
     # -- live messages ------------------------------------------------------------------------
 
     def on_live(self, inp: Input, raw: bytes, info: dict[str, Any]) -> None:
-        """A message from the topic's own subscription: applied when the topic is LIVE, else
-        kept until release or the switch."""
+        """A message from the topic's own subscription before the topic was LIVE: kept until
+        release or the switch; applied if the topic went LIVE meanwhile (its subscription then
+        delivers to the applier itself)."""
+        live = inp.live
+        if live is not None:
+            live(raw, info)
+            return
         ident = protocol.message_id(info)
-        if inp.phase is not _LIVE:
-            pending = self.pending_live[inp.topic]
-            pending.append((ident, raw, info))
+        self.pending_live[inp.topic].append((ident, raw, info))
+        if inp.phase is _HANDOVER:
+            state = self.handover.setdefault(inp.topic, _HandoverEvidence())
+            state.live_seen.add(ident)
+            if not state.waiting_ns:
+                state.waiting_ns = self.clock()
+            self._maybe_switch(inp.topic)
             if inp.phase is _HANDOVER:
-                state = self.handover.setdefault(inp.topic, _HandoverEvidence())
-                state.live_seen.add(ident)
-                if not state.waiting_ns:
-                    state.waiting_ns = self.clock()
-                self._maybe_switch(inp.topic)
-                if inp.phase is _HANDOVER:
-                    self._switch_unconfirmed_if_stalled(inp.topic, state.waiting_ns)
-            return
-        if ident in self.windows[inp.topic]:
-            # e.g. a transient-local publisher re-sending what the checkpoint already holds
-            self.stats['duplicates'] += 1
-            return
-        if self._quarantined and self._is_quarantined(inp.topic, ident):
-            return
-        self._apply(inp, raw, info, ident, log=True)
+                self._switch_unconfirmed_if_stalled(inp.topic, state.waiting_ns)
 
     # -- release and handover (S4) ------------------------------------------------------------
 
@@ -411,7 +393,7 @@ class Router:
         """What the node can tell it missed, switching ``topic`` unconfirmed: with one
         publisher, the sequence numbers between the last message applied and the first live
         one waiting that nobody applied (as words for the error; empty when none)."""
-        newest = self.windows[topic].newest
+        newest = self.applier.windows[topic].newest
         if newest is None or self.inputs[topic].sub.get_publisher_count() != 1:
             return ''
         settled = self.shadow_seen.get(topic, set()) | self.live_only.get(topic, set())
@@ -430,6 +412,7 @@ class Router:
         for inp in self.inputs.values():
             if inp.phase is TopicPhase.BUFFERED:
                 inp.phase = transition(inp.topic, inp.phase, TopicPhase.LIVE)
+                self._deliver_live(inp)
             elif inp.phase is TopicPhase.SHADOW:
                 inp.phase = transition(inp.topic, inp.phase, TopicPhase.HANDOVER)
         self._drain([t for t, inp in self.inputs.items() if inp.phase is TopicPhase.LIVE])
@@ -448,11 +431,12 @@ class Router:
         for topic in topics:
             self.pending_live[topic] = []
         backlog.sort(key=lambda item: item[0])
+        windows = self.applier.windows
         for _, inp, ident, raw, info in backlog:
-            if ident in self.windows[inp.topic] or ident in self.shadow_seen.get(inp.topic, ()):
-                self.stats['duplicates'] += 1
+            if ident in windows[inp.topic] or ident in self.shadow_seen.get(inp.topic, ()):
+                self.applier.stats['duplicates'] += 1
             elif not self._is_quarantined(inp.topic, ident):
-                self._apply(inp, raw, info, ident, log=True)
+                self.applier.apply(inp, raw, info, ident, log=True)
         return {topic: sorted(ident[1] for ident in idents)
                 for topic, idents in passed.items() if idents}
 
@@ -476,8 +460,8 @@ class Router:
         last_relayed = max(
             (i for i, (ident, _, _) in enumerate(pending) if ident in seen), default=0
         )  # 0 when none was: pending[:-1] would leave out every one but the last
-        window = self.windows[topic]
-        quarantined = self._quarantined  # skipped anyway, and counted as such
+        window = self.applier.windows[topic]
+        quarantined = self.applier.quarantined  # skipped anyway, and counted as such
         applied = self.live_only.get(topic, set())
         return {ident for ident, _, _ in pending[:last_relayed]
                 if ident not in seen and ident not in window and ident not in applied
@@ -506,9 +490,10 @@ class Router:
         if start >= len(pending) or inp.sub.get_publisher_count() != 1:
             return
         seen = self.shadow_seen.get(topic, set())
-        window = self.windows[topic]
+        window = self.applier.windows[topic]
         applied = self.live_only.setdefault(topic, set())
-        with self.lock:
+        quarantined = self.applier.quarantined
+        with self.applier.lock:
             i = start
             while i < len(pending) and inp.phase is _HANDOVER:
                 ident, raw, info = pending[i]
@@ -518,8 +503,8 @@ class Router:
                 between = ident[0] <= relayed[0] and (
                     newest is None or (ident[1] > newest[1] and ident[0] >= newest[0]))
                 if (between and ident not in seen and ident not in window
-                        and ident not in applied and (topic, ident) not in self._quarantined):
-                    self._apply(inp, raw, info, ident, log=True)
+                        and ident not in applied and (topic, ident) not in quarantined):
+                    self.applier.apply(inp, raw, info, ident, log=True)
                     applied.add(ident)
                 # Anything else is settled: delivered, applied, or not between the two (left
                 # to the switch).
@@ -555,15 +540,16 @@ class Router:
             IllegalPhaseChange: The topic is not in HANDOVER.
         """
         inp = self.inputs[topic]
-        with self.lock:
+        with self.applier.lock:
             inp.phase = transition(topic, inp.phase, TopicPhase.LIVE)
+            self._deliver_live(inp)
             passed = self._drain([topic]).get(topic, [])
             self.shadow_seen.pop(topic, None)
             live_only = sorted(ident[1] for ident in self.live_only.pop(topic, ()))
             self._scanned.pop(topic, None)
         self.handover.pop(topic, None)
         if passed:
-            self.stats['passed_by_relay'] += len(passed)
+            self.applier.stats['passed_by_relay'] += len(passed)
             seqs = protocol.seq_ranges(passed)
             self._error(
                 f'{topic}: {len(passed)} message(s) (publication seq {seqs}) '

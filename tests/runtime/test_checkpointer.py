@@ -74,7 +74,7 @@ def test_each_checkpoint_holds_its_instant_while_buffers_pass_from_one_to_the_ne
             node.grid[tick, tick] = -1.0
             _wait_for_io(rt)
             assert len(rt.checkpointer.array_pool) == 1  # this checkpoint's buffer, for the next
-            latest = rt.checkpoints.latest_valid()
+            latest = rt.checkpointer.checkpoints.latest_valid()
             assert latest is not None and latest.seq == tick
             values = codec.decode_vars(latest.vars_blob)
             assert values['ticks'] == tick
@@ -110,7 +110,7 @@ def test_a_checkpoint_writes_only_the_chunks_its_snapshot_found_changed(
             node.grid[tick * rows, 0] = float(tick + 1)  # a chunk of its own each time
             rt.checkpoint_tick()
             _wait_for_io(rt)
-            latest = rt.checkpoints.latest_valid()
+            latest = rt.checkpointer.checkpoints.latest_valid()
             assert latest is not None and latest.seq == tick + 1
             assert codec.decode_vars(latest.vars_blob)['grid'].tobytes() == node.grid.tobytes()
             # The first writes the changed chunk and the zeros once; then the changed one.
@@ -132,14 +132,14 @@ def test_a_clean_exit_takes_a_last_checkpoint_of_the_state_now(tmp_path: Path) -
     node = _Node()
     rt = _released(tmp_path, node)
     rt.close()  # not released yet: nothing to keep
-    assert rt.checkpoints.latest_valid() is None
+    assert rt.checkpointer.checkpoints.latest_valid() is None
     rt.open_gates(next_segment=1)
     node.ticks = 41
     rt.close()
-    latest = rt.checkpoints.latest_valid()
+    latest = rt.checkpointer.checkpoints.latest_valid()
     assert latest is not None and codec.decode_vars(latest.vars_blob)['ticks'] == 41
     rt.close()  # once
-    assert rt.checkpoints.latest_valid() == latest
+    assert rt.checkpointer.checkpoints.latest_valid() == latest
 
 
 def test_after_a_callback_raised_no_checkpoint_is_taken_at_exit(tmp_path: Path) -> None:
@@ -172,7 +172,7 @@ def test_after_a_callback_raised_no_checkpoint_is_taken_at_exit(tmp_path: Path) 
     with pytest.raises(ValueError, match='bad message'):
         sub.callback(bytes(serialize_message(Int64(data=1))), info)  # type: ignore[operator]
     rt.close()
-    assert rt.checkpoints.latest_valid() is None
+    assert rt.checkpointer.checkpoints.latest_valid() is None
 
 
 def test_a_checkpoint_not_taken_is_an_error_status_that_says_so_and_why(
@@ -183,7 +183,7 @@ def test_a_checkpoint_not_taken_is_an_error_status_that_says_so_and_why(
     node.context = SimpleNamespace(ok=lambda: True)  # type: ignore[attr-defined]  # rclpy's
     rt = _released(tmp_path, node)
     sent: list[Status] = []
-    rt._status = sent.append  # type: ignore[method-assign]
+    rt.reporter.status = sent.append  # type: ignore[method-assign]
     try:
         del node.ticks  # a key variable that cannot be read: the snapshot is refused
         rt.checkpoint_tick()
@@ -193,10 +193,11 @@ def test_a_checkpoint_not_taken_is_an_error_status_that_says_so_and_why(
         def full(*_: object, **__: object) -> None:
             raise OSError(errno.ENOSPC, 'No space left on device')
 
-        monkeypatch.setattr(rt.checkpoints, 'write', full)  # the snapshot is taken, not written
+        # the snapshot is taken, not written
+        monkeypatch.setattr(rt.checkpointer.checkpoints, 'write', full)
         rt.checkpoint_tick()
         _wait_for_io(rt)
-        rt._error('cannot log a message of /scan: disk full')  # an error of another kind
+        rt.reporter.error('cannot log a message of /scan: disk full')  # an error of another kind
     finally:
         rt.close()
     errors = [s for s in sent if isinstance(s, ErrorStatus)]

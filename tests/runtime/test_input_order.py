@@ -89,7 +89,7 @@ class Process:
             RuntimeEnv(node_id='n', store=tmp_path, incarnation=incarnation,
                        method=Method.RORY, mode=mode, interval=2.0))
         self.rt.node = self.node
-        self.rt.watch_parameters(self.node)
+        self.rt.gate.watch_parameters(self.node)
         self.rt.adopt_service(node_lifecycle.change_state_service(self.node))
         self.rt.adopt_service(self.node.fast)
         self.numbers = FakeSubscription('/numbers', self.node.on_number)
@@ -118,7 +118,7 @@ class Process:
 
     def checkpoint(self) -> None:
         """A checkpoint taken now, between two callbacks, written before the next input."""
-        persist = self.rt.checkpointer.take(self.node, self.rt.windows)
+        persist = self.rt.checkpointer.take(self.node, self.rt.applier.windows)
         assert persist is not None
         persist()
 
@@ -198,8 +198,9 @@ def test_changes_come_back_in_the_order_first_applied_wherever_the_checkpoint_fe
     second = Process(tmp_path, context, Mode.RECOVER, 2)
     restored = second.rt.restore([])
     assert restored is not None and restored.cut is not None
-    after_cut = [n for n in first.rt.segments.numbers() if n > restored.cut]
-    logged = [entry for n in after_cut for entry in read_segment(first.rt.segments.path(n))]
+    after_cut = [n for n in first.rt.checkpointer.segments.numbers() if n > restored.cut]
+    segments = first.rt.checkpointer.segments
+    logged = [entry for n in after_cut for entry in read_segment(segments.path(n))]
     for entry in readings_first(logged):
         second.rt.router.from_shadow(protocol.Msg(2, 0, entry.recv_ns, entry.source_ns,
                                                   entry.seq, entry.topic, entry.data))
@@ -211,7 +212,7 @@ def test_changes_come_back_in_the_order_first_applied_wherever_the_checkpoint_fe
     assert not any(executor.can_execute(srv) for srv in held)
     early = second.node.set_parameters_atomically([Parameter('gain', value=9.0)])
     assert not early.successful
-    second.rt.open_gates(next_segment=max(first.rt.segments.numbers(), default=0) + 1)
+    second.rt.open_gates(next_segment=max(first.rt.checkpointer.segments.numbers(), default=0) + 1)
     assert all(executor.can_execute(srv) for srv in held)
     executor.shutdown()
     # The handover after release (tested in test_routing.py): /numbers is read live again.

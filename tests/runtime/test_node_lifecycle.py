@@ -112,7 +112,7 @@ def test_change_state_requests_are_held_logged_and_replayed(
     assert _change(node, 'configure') and _change(node, 'activate')
     assert _change(node, 'deactivate')
     rt.close()
-    logged = list(read_segment(rt.segments.path(1)))
+    logged = list(read_segment(rt.checkpointer.segments.path(1)))
     assert [e.topic for e in logged] == [protocol.REQUEST_RECORD] * 3
 
     again = Camera('camera_2', context)

@@ -53,7 +53,7 @@ def _runtime(tmp_path: Path, node: Node, mode: Mode, incarnation: int) -> NodeRu
                      mode=mode, interval=2.0)
     rt = NodeRuntime(CheckpointSpec(('kp',), 'sha256:0'), env)
     rt.node = node
-    rt.watch_parameters(node)
+    rt.gate.watch_parameters(node)
     return rt
 
 
@@ -91,10 +91,10 @@ def test_a_change_from_outside_is_logged_and_replays_with_its_callbacks(
     assert node.set_parameters_atomically([Parameter('gain', value=3.0)]).successful
     assert node.kp == 3.0
     rt.close()
-    logged = list(read_segment(rt.segments.path(1)))
+    logged = list(read_segment(rt.checkpointer.segments.path(1)))
     # (and the clock reading rclpy takes to stamp its /parameter_events message)
     assert [e.topic for e in logged] == [protocol.PARAMETERS_RECORD, protocol.CLOCK_RECORD]
-    assert rt.stats['parameter_changes'] == 1
+    assert rt.applier.stats['parameter_changes'] == 1
 
     fresh = Tuned(context)
     rt2 = _runtime(tmp_path, fresh, Mode.RECOVER, 2)
@@ -103,7 +103,7 @@ def test_a_change_from_outside_is_logged_and_replays_with_its_callbacks(
                                             entry.topic, entry.data))
     assert fresh.get_parameter('gain').value == 3.0 and fresh.kp == 3.0
     assert fresh.seen == ['on gain=3.0', 'post gain']
-    assert rt2.stats['parameter_changes_replayed'] == 1
+    assert rt2.applier.stats['parameter_changes_replayed'] == 1
 
 
 def test_a_change_a_callback_makes_is_not_logged_as_an_input(
@@ -112,16 +112,17 @@ def test_a_change_a_callback_makes_is_not_logged_as_an_input(
     node = Tuned(context)
     rt = _runtime(tmp_path, node, Mode.FRESH, 1)
     rt.open_gates(next_segment=1)
-    assert rt.clock is not None
-    rt.clock.begin_live()  # inside an event, as a message callback would be
+    assert rt.applier.clock is not None
+    rt.applier.clock.begin_live()  # inside an event, as a message callback would be
     try:
         node.set_parameters_atomically([Parameter('mode', value='fast')])
     finally:
-        rt.clock.end()
+        rt.applier.clock.end()
     assert node.get_parameter('mode').value == 'fast'
-    assert rt.stats['parameter_changes'] == 0
+    assert rt.applier.stats['parameter_changes'] == 0
     rt.close()
-    logged = [e.topic for n in rt.segments.numbers() for e in read_segment(rt.segments.path(n))]
+    segments = rt.checkpointer.segments
+    logged = [e.topic for n in segments.numbers() for e in read_segment(segments.path(n))]
     assert protocol.PARAMETERS_RECORD not in logged
 
 

@@ -74,16 +74,16 @@ def test_requests_are_logged_and_replay_in_order_without_a_response(
         assert response.success
     assert response.message == '3'
     rt.close()
-    logged = list(read_segment(rt.segments.path(1)))
+    logged = list(read_segment(rt.checkpointer.segments.path(1)))
     assert [(e.topic, e.seq) for e in logged] == [(protocol.REQUEST_RECORD, 0)] * 3
-    assert rt.stats['requests'] == 3
+    assert rt.applier.stats['requests'] == 3
 
     rt2, _, handler2 = _served(tmp_path, context, Mode.RECOVER, 2)
     for entry in readings_first(logged):
         rt2.router.from_shadow(protocol.Msg(2, 0, entry.recv_ns, entry.source_ns, entry.seq,
                                             entry.topic, entry.data))
     assert handler2.asked == handler.asked == [True, False, True]
-    assert rt2.stats['requests_replayed'] == 3
+    assert rt2.applier.stats['requests_replayed'] == 3
 
 
 def test_an_async_service_handler_is_refused_by_name(tmp_path: Path, context: Context) -> None:

@@ -63,7 +63,7 @@ def test_a_decorated_node_gives_its_own_entities_to_its_runtime(
         assert isinstance(rt, runtime.NodeRuntime) and rt.node is node
         assert list(rt.router.inputs) == ['/numbers'] and node.sub.raw
         # rclpy's own /parameter_events and RORY's status publisher are not the node's outputs
-        assert rt.publishers == [node.pub]
+        assert rt.gate.publishers == [node.pub]
     finally:
         rt.close()
         node.destroy_node()

@@ -25,6 +25,7 @@ from runtime_fakes import (
 )
 
 from rory_runtime import protocol, routing
+from rory_runtime.applier import LiveCallback, Window
 from rory_runtime.errors import RoryError
 from rory_runtime.event_clock import Reading
 from rory_runtime.log import read_segment
@@ -96,12 +97,12 @@ def test_recovery_applies_the_shadow_stream_and_skips_what_was_absorbed(
 ) -> None:
     rt = make_runtime(tmp_path, Mode.RECOVER)
     sub = adopt_numbers(rt, applied)
-    rt.windows['/numbers'].add((2, 2))  # absorbed by the restored checkpoint
+    rt.applier.windows['/numbers'].add((2, 2))  # absorbed by the restored checkpoint
     deliver_live(sub, 5)  # live messages wait during recovery
     for n in (1, 2, 3, 4):
         rt.router.from_shadow(shadow(n))
     assert applied == [1, 3, 4]
-    assert rt.stats['duplicates'] == 1
+    assert rt.applier.stats['duplicates'] == 1
 
 
 def test_handover_switches_after_confirmations_without_loss_or_repeats(
@@ -173,9 +174,10 @@ def test_a_message_only_the_live_reader_got_is_applied_before_the_relayed_one_af
     _outage_handover(rt, sub)
     deliver_live(sub, 10)
     assert applied == [1, 2, 3, 5, 6, 7, 8, 9, 10]
-    assert rt.stats['passed_by_relay'] == 0 and not rt.reported_errors
+    assert rt.applier.stats['passed_by_relay'] == 0 and not rt.reporter.reported_errors
     rt.close()
-    logged = [e.seq for n in rt.segments.numbers() for e in read_segment(rt.segments.path(n))]
+    segments = rt.checkpointer.segments
+    logged = [e.seq for n in segments.numbers() for e in read_segment(segments.path(n))]
     assert logged == [5, 6, 7, 8, 9, 10]  # applied after release: the node logged each
 
 
@@ -197,8 +199,9 @@ def test_a_message_the_live_reader_got_after_later_ones_came_by_relay_is_never_a
     assert rt.router.phase('/numbers') is TopicPhase.LIVE
     deliver_live(sub, 10)
     assert applied == [1, 2, 3, 6, 7, 8, 9, 10]
-    assert rt.stats['passed_by_relay'] == 1
-    assert any('/numbers: 1 message(s) (publication seq 5)' in e for e in rt.reported_errors)
+    assert rt.applier.stats['passed_by_relay'] == 1
+    assert any('/numbers: 1 message(s) (publication seq 5)' in e
+               for e in rt.reporter.reported_errors)
 
 
 def test_with_two_publishers_a_message_the_relay_missed_is_still_applied(
@@ -211,7 +214,7 @@ def test_with_two_publishers_a_message_the_relay_missed_is_still_applied(
     sub = adopt_numbers(rt, applied)
     _outage_handover(rt, sub)
     assert sorted(applied) == [1, 2, 3, 5, 6, 7, 8, 9]
-    assert rt.stats['passed_by_relay'] == 0
+    assert rt.applier.stats['passed_by_relay'] == 0
 
 
 def test_relayed_messages_are_logged_replayed_ones_are_not(
@@ -223,9 +226,9 @@ def test_relayed_messages_are_logged_replayed_ones_are_not(
     rt.open_gates(next_segment=7)
     rt.router.from_shadow(shadow(2, relay=True))  # recorded after RELEASE: only the node logs it
     rt.close()
-    logged = list(read_segment(rt.segments.path(7)))
+    logged = list(read_segment(rt.checkpointer.segments.path(7)))
     assert [(e.source_ns, e.seq) for e in logged] == [(2, 2)]
-    assert rt.segments.numbers() == [7]
+    assert rt.checkpointer.segments.numbers() == [7]
 
 
 def test_silent_relay_switches_the_topic_to_live_instead_of_stalling(
@@ -240,7 +243,7 @@ def test_silent_relay_switches_the_topic_to_live_instead_of_stalling(
     deliver_live(sub, 2)
     assert rt.router.phase('/numbers') is TopicPhase.LIVE
     assert applied == [1, 2]
-    assert any('no relay for /numbers' in e for e in rt.reported_errors)
+    assert any('no relay for /numbers' in e for e in rt.reporter.reported_errors)
 
 
 # -- the handover after a link outage longer than the DDS lease (issue 35) ---------------------
@@ -303,32 +306,49 @@ class _Bench:
         return self.router.phase('/numbers')
 
 
+class _Applier:
+    """What the router hands messages to (``routing.Applying``): records each message applied
+    (number, logged) and keeps the windows and counters the router reads."""
+
+    def __init__(self) -> None:
+        self.lock = threading.RLock()
+        self.windows: dict[str, Window] = {}
+        self.stats = dict.fromkeys(('applied', 'replayed', 'duplicates', 'quarantined',
+                                    'passed_by_relay'), 0)
+        self.quarantined: frozenset[tuple[str, MessageId]] = frozenset()
+        self.applied: list[tuple[int, bool]] = []
+
+    def apply(self, inp: routing.Input, raw: bytes, info: dict[str, Any], ident: MessageId,
+              readings: Iterable[Reading] = (), *, log: bool) -> None:
+        self.applied.append((ident[1], log))
+        self.windows[inp.topic].add(ident)
+
+    def live_path(self, inp: routing.Input) -> LiveCallback:
+        def live(raw: bytes, info: dict[str, Any]) -> None:
+            ident = protocol.message_id(info)
+            if ident in self.windows[inp.topic]:
+                self.stats['duplicates'] += 1
+            else:
+                self.apply(inp, raw, info, ident, log=True)
+
+        return live
+
+
 def _bench(*, replayed: tuple[int, ...] = (1, 2, 3)) -> _Bench:
     """Released after replaying ``replayed``: /numbers in HANDOVER."""
     clock = _Clock()
-    windows: dict[str, routing.Window] = {}
-    stats = dict.fromkeys(('applied', 'replayed', 'duplicates', 'quarantined',
-                           'passed_by_relay'), 0)
-    applied: list[tuple[int, bool]] = []
-
-    def apply(inp: routing.Input, raw: bytes, info: dict[str, Any], ident: MessageId,
-              readings: Iterable[Reading] = (), *, log: bool) -> None:
-        applied.append((ident[1], log))
-        windows[inp.topic].add(ident)
-
+    applier = _Applier()
     errors: list[str] = []
     statuses: list[Status] = []
-    router = Router(recovering=True, quarantined=frozenset(), lock=threading.RLock(),
-                    windows=windows, stats=stats, apply=apply,
-                    replay_event=lambda msg, readings: None, error=errors.append,
-                    status=statuses.append, clock=clock)
+    router = Router(recovering=True, applier=applier, replay_event=lambda msg, readings: None,
+                    error=errors.append, status=statuses.append, clock=clock)
     sub = FakeSubscription('/numbers', lambda msg: None)
     router.adopt(sub, released=False)  # type: ignore[arg-type]
     for n in replayed:
         router.from_shadow(shadow(n))
     router.release()
     assert router.phase('/numbers') is TopicPhase.HANDOVER
-    return _Bench(router, sub, clock, applied, errors, statuses)
+    return _Bench(router, sub, clock, applier.applied, errors, statuses)
 
 
 def test_the_live_reader_back_first_waits_for_a_relay_that_is_alive_then_loses_nothing_it_got(
@@ -430,7 +450,7 @@ def test_live_duplicate_of_an_absorbed_message_is_skipped_after_release(
     # e.g. a transient-local publisher re-sending its last sample to the new reader
     rt = make_runtime(tmp_path, Mode.RECOVER, Method.CHECKPOINT)
     sub = adopt_numbers(rt, applied)
-    rt.windows['/numbers'].add((9, 9))
+    rt.applier.windows['/numbers'].add((9, 9))
     rt.open_gates(next_segment=1)
     deliver_live(sub, 9)
     deliver_live(sub, 10)

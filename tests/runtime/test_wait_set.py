@@ -141,7 +141,8 @@ def test_the_executor_waits_on_the_original_entities_only(
                     executor.spin_once(timeout_sec=0.05)
         _spin_until(executor, lambda: runtime.released and runtime.shadow_subscription is None)
         if method.checkpoints:
-            _spin_until(executor, lambda: runtime.checkpoints.latest_valid() is not None)
+            checkpoints = runtime.checkpointer.checkpoints
+            _spin_until(executor, lambda: checkpoints.latest_valid() is not None)
         shapes = _steady_shapes(node, executor, recorded, 1.0)
     finally:
         executor.remove_node(node)

@@ -193,7 +193,11 @@ def run_on_hosts(
     def check(proc: subprocess.Popen[bytes], what: str) -> None:
         if proc.poll() is not None or time.monotonic() > deadline:
             why = 'exited' if proc.poll() is not None else 'timed out'
-            raise RuntimeError(f'{what}: {why}\n{sup_log.read_text()[-4000:]}')
+            # Taken while every process still runs: the sockets and counters of the moment.
+            snapshot = workdir / 'network-at-failure.txt'
+            snapshot.write_text(hosts.snapshot())
+            raise RuntimeError(f'{what}: {why} (the hosts\' network then: {snapshot})\n'
+                               f'{sup_log.read_text()[-4000:]}')
 
     rx0, tx0 = hosts.interface_packets(node_host)  # the interface outlives a run
     packets = (0, 0)

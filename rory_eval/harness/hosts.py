@@ -261,6 +261,23 @@ class Hosts:
         """Put ``host`` back on the link (its address and connected route come back with it)."""
         _ip('-n', host.netns, 'link', 'set', host.device, 'up')
 
+    def snapshot(self) -> str:
+        """What each host's network looked like now: its link and addresses, its routes, its
+        UDP sockets with their processes, and its interface counters. Written when a run fails
+        to discover across the hosts, so that the failure explains itself
+        (docs/faults.md, "test_multihost")."""
+        parts = []
+        for host in self.hosts:
+            for args in (['ip', '-br', 'link'], ['ip', '-br', 'addr'], ['ip', 'route'],
+                         ['ss', '-uanp'], ['ip', '-s', 'link', 'show', host.device]):
+                try:
+                    done = self.run(host, args, timeout=10.0)
+                    text = done.stdout + done.stderr
+                except (OSError, subprocess.TimeoutExpired) as err:
+                    text = f'{err}\n'
+                parts.append(f'## {host.label} ({host.netns}): {" ".join(args)}\n{text}')
+        return '\n'.join(parts)
+
     def interface_packets(self, host: Host) -> tuple[int, int]:
         """(received, sent) packets of ``host``'s link interface so far."""
         shown = _ip('-j', '-s', '-n', host.netns, 'link', 'show', host.device).stdout

@@ -196,3 +196,8 @@ def test_hosts_links_run_when_made(hosts: Hosts) -> None:
     hosts.link_up(hosts['b'])
     hosts.wait_running()
     assert all(hosts.running(host) for host in hosts.hosts)
+    # What a failed run writes beside its logs: every host's addresses and UDP sockets.
+    snapshot = hosts.snapshot()
+    for host in hosts.hosts:
+        assert f'## {host.label} ({host.netns}): ss -uanp' in snapshot
+        assert host.address in snapshot

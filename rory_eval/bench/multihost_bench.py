@@ -194,10 +194,11 @@ def run_on_hosts(
         if proc.poll() is not None or time.monotonic() > deadline:
             why = 'exited' if proc.poll() is not None else 'timed out'
             # Taken while every process still runs: the sockets and counters of the moment.
-            snapshot = workdir / 'network-at-failure.txt'
-            snapshot.write_text(hosts.snapshot())
-            raise RuntimeError(f'{what}: {why} (the hosts\' network then: {snapshot})\n'
-                               f'{sup_log.read_text()[-4000:]}')
+            # (Also in the error: a CI run keeps only what the failure printed.)
+            network = hosts.snapshot()
+            (workdir / 'network-at-failure.txt').write_text(network)
+            raise RuntimeError(f'{what}: {why}\n{sup_log.read_text()[-4000:]}\n'
+                               f'# the hosts\' network then\n{network[-8000:]}')
 
     rx0, tx0 = hosts.interface_packets(node_host)  # the interface outlives a run
     packets = (0, 0)

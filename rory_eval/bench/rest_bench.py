@@ -343,7 +343,7 @@ def table(summary: dict[str, Any]) -> str:
     lines = [f'Medians of {summary["runs"]} runs (min-max); CPU in % of one core over the window, '
              'PSS at its end.', '',
              '| process | CPU (% of a core) | PSS (MB) |', '|---|---:|---:|',
-             f'| **fixed: supervisor + zygote + standby** | '
+             f'| **fixed: supervisor + zygote + standbys + spares** | '
              f'{_cell(summary["fixed"]["cpu_percent"], 2, True)} '
              f'| {_cell(summary["fixed"]["pss_mb"], 1, True)} |']
     for role in FIXED:

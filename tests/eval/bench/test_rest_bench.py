@@ -75,7 +75,7 @@ def test_the_table_shows_the_fixed_sum_each_process_the_nodes_and_the_threads() 
     summary = summarise([run(0.20, 38.0, {'python': 0.12, 'dds.ev': 0.08}),
                          run(0.30, 40.0, {'python': 0.18, 'dds.ev': 0.12})])
     text = table(summary)
-    assert '| **fixed: supervisor + zygote + standby** | **0.30** (0.25-0.35) ' \
+    assert '| **fixed: supervisor + zygote + standbys + spares** | **0.30** (0.25-0.35) ' \
            '| **69.0** (68.0-70.0) |' in text
     assert '| zygote | 0.00 (0.00-0.00) | 12.0 (12.0-12.0) |' in text
     assert '| the 6 nodes (not in the figure) | 3.00 (3.00-3.00) | 150.0 (150.0-150.0) |' in text

@@ -157,7 +157,8 @@ def test_what_a_node_process_loads_never_imports_the_supervisor() -> None:
 
 SUPERVISOR_DECISIONS = ('states', 'watchdog', 'events', 'output', 'lineage', 'ports', 'recovery',
                         'poison', 'run_marker', 'config', 'process', 'managed_node', 'gate',
-                        'loop_events', 'health', 'standby_keeper', 'incarnation')
+                        'loop_events', 'health', 'standby_keeper', 'incarnation', 'handover',
+                        'readers', 'recoveries')
 """The supervisor's modules that decide and keep records; rclpy is reached through the ports
 (supervisor/ports.py), so their unit tests run on fakes. ManagedNode's own module is one: the
 ROS side (supervisor.py) makes the readers, writers and services behind its ports."""

@@ -13,6 +13,13 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from ..fsutil import make_private_dir
+from ..protocol import StatusMessage
+
+
+def status_fields(message: StatusMessage) -> dict[str, Any]:
+    """What a node's status carries but its kind and node, as it travelled: the fields of the
+    ``hello`` and ``checkpoint`` events."""
+    return {k: v for k, v in message.to_json().items() if k not in ('kind', 'node')}
 
 
 class RosoutHandler(logging.Handler):

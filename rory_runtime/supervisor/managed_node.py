@@ -1,28 +1,27 @@
 """One supervised node's decisions (:class:`ManagedNode`), on the supervisor's ports
 (ports.py), driven by the main loop: ``on_exit``, ``on_status``, ``on_gate_call`` and
 ``tick``. No rclpy here: the ROS side (supervisor.py) makes the readers, writers and services
-behind the ports. Its parts: the current process (incarnation.py), the recovery and what it
-says (recovery.py), the heartbeat (watchdog.py), the release gate (gate.py), the warm standby
-(standby_keeper.py), poison (poison.py)."""
+behind the ports. ManagedNode owns the node's state and its life (spawn, crash, restart, give
+up, stop); its parts decide the rest: the current process (incarnation.py), the handover from
+HELLO to release (handover.py, with the release gate: gate.py), its recoveries (recoveries.py;
+each one's steps and what it says: recovery.py), the readers of its inputs (readers.py), the
+heartbeat (watchdog.py), the warm standby (standby_keeper.py), poison (poison.py)."""
 
 from __future__ import annotations
 
 import logging
 import random
 import signal
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
-from ..freshness import Verdict
 from ..inflight import slot_path
 from ..log import SegmentStore
 from ..protocol import (
     CheckpointStatus,
     ErrorStatus,
     HelloStatus,
-    InputSpec,
     InputsStatus,
     Mode,
     OpenedStatus,
@@ -33,17 +32,21 @@ from ..protocol import (
 )
 from ..store import CheckpointStore
 from .config import NodeConfig
-from .gate import SYNC_PERIOD, Gate
+from .events import status_fields
+from .gate import Gate
+from .handover import Handover, Step
 from .health import NodeHealth, NodeRecord, age
 from .incarnation import Incarnation
-from .loop_events import ChildExited, Released
+from .loop_events import ChildExited
 from .poison import PoisonGuard
-from .ports import RingPort, SupervisorPorts
-from .process import RestartPolicy, describe_exit, node_environment, stop_child
-from .recovery import EarlyCapture, GapReports, Recovery, say_recovered
+from .ports import SupervisorPorts
+from .process import RestartPolicy, describe_exit, node_environment, reap, stop_child
+from .readers import InputReaders
+from .recoveries import Recoveries
+from .recovery import Recovery, say_resumed
 from .standby_keeper import StandbyKeeper
 from .states import LOG_PREFIX, NodeState, NodeStateMachine, StateEvent
-from .watchdog import Beat, Hung, Unheard, Watchdog, say_hung, say_overdue, say_unheard
+from .watchdog import Beat, Watchdog, enforce, say_overdue
 
 _logger = logging.getLogger('rory.supervisor')
 
@@ -66,9 +69,7 @@ class ManagedNode:
         # What belongs to the current process (its pid, HELLO, shadow topic); a new one at
         # each spawn.
         self.current = Incarnation(0, 0)
-        self.inputs: list[InputSpec] = []
-        self.ring: RingPort | None = None
-        self.recovery: Recovery | None = None
+        self.inputs = InputReaders(cfg.name, cfg.method.logs, sup.make_ring, sup.events_log)
         self.restart_at: float | None = None
         self.checkpoints = CheckpointStore(sup.config.store, cfg.name)
         self.segments = SegmentStore(sup.config.store, cfg.name)
@@ -79,13 +80,18 @@ class ManagedNode:
         self.resumed = False  # first started from the store of a run that did not stop
         self.standby = StandbyKeeper(sup, cfg,
                                      lambda: self._env(Mode.RECOVER, self.incarnation + 1))
-        self.gaps = GapReports(cfg.name, sup.events_log)  # input gaps, each said once
-        self.early = EarlyCapture(cfg.name)  # what the ring took since the beat went late
-        # The release gate (its service is served by the ROS side: on_gate_call).
-        self.gate = (None if cfg.release_gate is None else
-                     Gate(cfg.name, cfg.release_gate, self.gate_service, sup.clock,
-                          lambda: self.current.send_open()))
+        # Its recovery now, if any, and its input gaps.
+        self.recoveries = Recoveries(cfg.name, sup.safety, self.segments, self.checkpoints,
+                                     sup.clock, sup.events_log)
         self.record = NodeRecord()  # crashes, last recovery, why FATAL, freshness
+        # HELLO to release, with the release gate (its service is served by the ROS side:
+        # on_gate_call).
+        gate = (None if cfg.release_gate is None else
+                Gate(cfg.name, cfg.release_gate, self.gate_service, sup.clock,
+                     lambda: self.current.send_open()))
+        self.handover = Handover(cfg, sup.clock, sup.events_log, gate, self.record,
+                                 self.recoveries.gaps,
+                                 sup.events.put, self.segments.next_number)
 
     @property
     def id(self) -> str:
@@ -95,6 +101,11 @@ class ManagedNode:
     def incarnation(self) -> int:
         """The number of its current (or last) process; 0 before the first."""
         return self.current.number
+
+    @property
+    def recovery(self) -> Recovery | None:
+        """Its recovery now, if any (``Recoveries.current``)."""
+        return self.recoveries.current
 
     @property
     def slot(self) -> Path:
@@ -139,14 +150,8 @@ class ManagedNode:
         )
         self.sup.events_log.write('spawn', self.id, pid=child.pid, incarnation=incarnation,
                                   mode=mode.value, warm=warm)
-
-        def reap() -> None:
-            code = child.wait()
-            self.sup.events.put(
-                ChildExited(self.id, incarnation, code, self.sup.clock(), time.time_ns())
-            )
-
-        threading.Thread(target=reap, name=f'rory-reap-{self.id}', daemon=True).start()
+        reap(child, self.id, lambda code: self.sup.events.put(
+            ChildExited(self.id, incarnation, code, self.sup.clock(), time.time_ns())))
 
     def start(self) -> None:
         """First start of the node."""
@@ -157,14 +162,6 @@ class ManagedNode:
         """A checkpoint or a message log of an earlier run is on disk."""
         return bool(self.segments.numbers()) or self.checkpoints.latest_valid() is not None
 
-    def _new_recovery(self, crashed: float, crashed_ns: int, ring: RingPort | None) -> Recovery:
-        self.recovery = Recovery(
-            node_id=self.id, crashed=crashed, crashed_ns=crashed_ns, safety=self.sup.safety,
-            ring=ring, segments=self.segments, checkpoints=self.checkpoints,
-            clock=self.sup.clock,
-        )
-        return self.recovery
-
     def start_resumed(self, down_since: float | None) -> None:
         """First start after a supervisor that died: a recovery from the store (S1-S4).
 
@@ -173,17 +170,11 @@ class ManagedNode:
         the event says for how long that was.
         """
         now = self.sup.clock()
-        gap = None if down_since is None else max(0.0, time.time() - down_since)
-        self.sup.events_log.write('resumed', self.id, unrecorded_s=gap)
-        _logger.warning(
-            '%s %s: resuming from %s after a supervisor that did not stop cleanly%s',
-            LOG_PREFIX, self.id, self.sup.config.store / self.id,
-            '' if gap is None else f' (inputs unrecorded for up to {gap:.1f} s)',
-        )
+        say_resumed(self.id, self.sup.config.store / self.id, down_since, self.sup.events_log)
         self.sm.change_state(NodeState.RESTORING, 'resume from the store')
-        rec = self._new_recovery(now, time.time_ns(), None)
         self.resumed = True
-        rec.begin()  # S2 without a ring: it joins at HELLO, once the node has named its inputs
+        # S2 without a ring: it joins at HELLO, once the node has named its inputs.
+        rec = self.recoveries.start(now, time.time_ns(), None)
         rec.s3_restart(lambda: self.spawn(Mode.RECOVER))
 
     def on_exit(self, ev: ChildExited) -> None:
@@ -202,7 +193,7 @@ class ManagedNode:
             self.sm.change_state(NodeState.EXITED, how)
             self.standby.drop()
             self._end_recovery()
-            self.early.stop(self.ring, 'exited')
+            self.inputs.stop_early('exited')
             return
         self.record.crashes += 1
         ran_for = 0.0 if current.running_since is None else ev.at - current.running_since
@@ -213,9 +204,9 @@ class ManagedNode:
         died_on, quarantined = self.poison.judge(
             ev.incarnation, list(rlog.entries) if rlog is not None else [], self.sup.events_log)
         self.sm.change_state(NodeState.CRASHED, how)
-        self._crashed(ev, was_recovering)
-        assert self.recovery is not None  # made or carried on by _crashed
-        self.recovery.note_crash(died_on, quarantined)
+        rec = self.recoveries.crashed(ev.at, ev.at_ns, was_recovering, self.inputs.ring,
+                                      self.inputs.take_early)
+        rec.note_crash(died_on, quarantined)
         delay = self.policy.on_crash(ran_for)
         if delay is None:
             self._give_up(f'{self.policy.consecutive - 1} restarts in a row failed; giving up',
@@ -237,25 +228,8 @@ class ManagedNode:
         if child is not None:  # refused or gated: the process the supervisor will not run
             child.send_signal(signal.SIGKILL)
         self.standby.drop()
-        if self.gate is not None:
-            self.gate.held = None
-        if self.recovery is not None:
-            self.recovery.give_up()
-
-    def _crashed(self, ev: ChildExited, was_recovering: bool) -> None:
-        rec = self.recovery
-        if rec is not None and was_recovering:
-            # Died before its release: the same recovery goes on (R keeps recording, the safe
-            # state stays held), and its time still counts from the first crash.
-            rec.again(ev.at)
-            return
-        if rec is not None:
-            # Crashed during the handover of an earlier recovery, whose S4 released the safe
-            # state: that one ends here, and this crash is a recovery of its own.
-            rec.stop()
-            self.gaps.report(rec)  # also those held back for a switch that never came
-        ring = self.ring if self.cfg.method.logs else None
-        self._new_recovery(ev.at, ev.at_ns, ring).begin(self.early.take())
+        self.handover.drop()
+        self.recoveries.give_up()
 
     def _restart(self) -> None:
         self.restart_at = None
@@ -270,21 +244,17 @@ class ManagedNode:
         if message.incarnation != self.incarnation:
             return
         status, events = message.status, self.sup.events_log
+        current, state, handover = self.current, self.sm.state, self.handover
         if isinstance(status, HelloStatus):
-            self._on_hello(status, message)
+            if current.hello is None:
+                self._on_hello(status, message)
         elif isinstance(status, SyncedStatus):
-            if self.current.synced(status.nonce, status.live_publishers):
-                self._on_synced()
+            if current.synced(status.nonce, status.live_publishers):
+                handover.synced(current, state, self.recovery)
         elif isinstance(status, ReleasedStatus):
-            self._on_released(status)
+            self._take(handover.released(current, status, state, self.recovery))
         elif isinstance(status, OpenedStatus):
-            gate = self.gate
-            if self.sm.state == NodeState.GATED and gate is not None and gate.held is not None:
-                # What the node published while it waited was muted: counted, never sent.
-                events.write('gate_opened', self.id, reason=gate.reason, muted=status.muted)
-                stats = gate.opened()
-                assert stats is not None
-                self._finish_release(stats)
+            self._take(handover.opened(current, status, state, self.recovery))
         elif isinstance(status, CheckpointStatus):
             # DEBUG: one every checkpoint_interval per node is routine (events.jsonl,
             # /rory/events and the diagnostics' checkpoint age carry it); at INFO it went to the
@@ -295,7 +265,7 @@ class ManagedNode:
             )
             self.watchdog.checkpoint_taken(self.sup.clock())
             self.current.checkpoint_error = None
-            events.write('checkpoint', self.id, **_fields(message))
+            events.write('checkpoint', self.id, **status_fields(message))
         elif isinstance(status, SwitchedStatus):
             events.write('switched', self.id, topic=status.topic,
                          passed_by_relay=list(status.passed_by_relay),
@@ -304,14 +274,7 @@ class ManagedNode:
                                                                        status.live_only):
                 self._end_recovery()
         elif isinstance(status, InputsStatus):
-            # The node made a subscription after HELLO: read that topic in the ring too.
-            inputs = list(status.inputs)
-            added = sorted({i.topic for i in inputs} - {i.topic for i in self.inputs})
-            self.inputs = inputs
-            events.write('inputs', self.id, added=added)
-            _logger.info('%s %s: new input(s) %s', LOG_PREFIX, self.id, ', '.join(added))
-            if self.cfg.method.logs and self.ring is not None:
-                self.ring.ensure(self.inputs)
+            self.inputs.added(status.inputs)
         elif isinstance(status, ErrorStatus):
             if status.checkpoint_failed:  # a checkpoint not taken (Checkpointer.take)
                 self.current.checkpoint_error = status.message
@@ -319,118 +282,43 @@ class ManagedNode:
             events.write('error', self.id, message=status.message)
 
     def _on_hello(self, hello: HelloStatus, message: StatusMessage) -> None:
-        """The process started (``message``, all of it, goes to the event log)."""
-        if self.current.hello is not None:
-            return
+        """The process started (``message``, all of it, goes to the event log): the ring
+        reads its inputs (and joins a recovery that had none), then the handover goes on."""
         self.current.hello = hello
-        self.inputs = list(hello.inputs)
-        self.sup.events_log.write('hello', self.id, **_fields(message))
+        self.sup.events_log.write('hello', self.id, **status_fields(message))
         for refused in hello.refused:
             _logger.warning('%s %s: %s', LOG_PREFIX, self.id, refused)
-        if self.cfg.method.logs:
-            if self.ring is None:
-                self.ring = self.sup.make_ring(self.id)
-            self.ring.ensure(self.inputs)
-            if self.recovery is not None and self.recovery.ring is None:
-                if not self.resumed:
-                    _logger.warning(
-                        '%s %s: crashed before RORY knew its inputs; messages published until '
-                        'now are not recorded', LOG_PREFIX, self.id,
-                    )
-                self.recovery.join_ring(self.ring)
-        if hello.restored is not None:
-            freshness = self.record.freshness = hello.restored.freshness
-            if freshness.refused:
-                self._refuse_stale(freshness)
-                return
-        if self.recovery is not None:
-            self.recovery.on_hello(float(hello.restore_ms))
-            if self.cfg.method.checkpoints and hello.refused and hello.restored is None:
-                # Logs are pruned up to the older kept checkpoint's cut: with both refused,
-                # replay cannot rebuild what they held. Say so; never pretend.
-                _logger.error(
-                    '%s %s: every checkpoint was refused; the state is rebuilt only from the log '
-                    'that remains and may be incomplete', LOG_PREFIX, self.id,
-                )
-        if self.cfg.method.logs:
-            if self.sm.state == NodeState.STARTING:
-                self.sm.change_state(NodeState.ARMING, 'waiting for RORY readers to match')
-            elif self.sm.state == NodeState.RESTORING:
-                self.sm.change_state(NodeState.REPLAYING,
-                                     f'replay after segment {self.current.restored_cut()}')
-            self.current.send_sync(self.sup.clock())
+        ring = self.inputs.named(hello.inputs)
+        if ring is not None and self.recovery is not None and self.recovery.ring is None:
+            if not self.resumed:
+                _logger.warning('%s %s: crashed before RORY knew its inputs; messages published '
+                                'until now are not recorded', LOG_PREFIX, self.id)
+            self.recovery.join_ring(ring)
+        self._take(self.handover.hello(self.current, hello, self.sm.state, self.recovery))
 
-    def _refuse_stale(self, verdict: Verdict) -> None:
-        """A stale variable whose rule is ``refuse``: the node does not run on its checkpoint
-        (freshness.py); an operator decides (raise max_age, or start it fresh)."""
-        age = 'unknown' if verdict.age_s is None else f'{verdict.age_s:.1f} s'
-        reason = (f'checkpoint too old for {", ".join(verdict.refused)} '
-                  f'(age {age} on the {verdict.clock} clock; on_stale: refuse): not '
-                  'started, the safe state is held; start it fresh (rory supervise --fresh) or '
-                  'raise max_age in keyvars.yaml')
-        _logger.error('%s %s: %s', LOG_PREFIX, self.id, reason)
-        self._give_up(reason, freshness=verdict.to_json())
-
-    def _on_synced(self) -> None:
-        current = self.current
-        if self.sm.state == NodeState.REPLAYING and self.recovery is not None:
-            assert current.hello is not None and current.replay_pub is not None
-            incarnation = current.number
-            self.recovery.s3_replay(
-                current.replay_pub, incarnation, current.restored_cut(),
-                current.replay_pace(self.cfg.replay),
-                lambda sent: self.sup.events.put(Released(self.id, incarnation, sent)),
-            )
-
-    def _on_released(self, stats: ReleasedStatus) -> None:
-        self.current.running_since = self.sup.clock()
-        recovering = self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING)
-        if recovering and self.recovery is not None and self.gate is not None:
-            # Caught up and live, outputs muted: wait for the release call (or the timeout).
-            gate = self.gate
-            self.sm.change_state(NodeState.GATED, gate.enter(stats))
-            self.sup.events_log.write('gated', self.id, service=gate.service,
-                                      timeout=gate.config.timeout,
-                                      on_timeout=gate.config.on_timeout)
-            if gate.called:
-                gate.open('called before the node had caught up')
+    def _take(self, step: Step) -> None:
+        """The handover's next step: give up, or enter its state, do what follows, end the
+        recovery."""
+        if step.give_up is not None:
+            self._give_up(step.give_up, **step.fields)
             return
-        self._finish_release(stats)
+        if step.state is not None:
+            self.sm.change_state(step.state, step.reason)
+        if step.then is not None:
+            step.then()
+        if step.end_recovery:
+            self._end_recovery()
 
     def on_gate_call(self) -> tuple[bool, str]:
         """A call on the release gate service (main thread): the answer to give."""
-        if self.gate is None:
-            return False, f'{self.id}: no release gate'
-        return self.gate.on_call(self.sm.state)
-
-    def _finish_release(self, stats: ReleasedStatus) -> None:
-        rec = self.recovery
-        if rec is not None and self.sm.state in (NodeState.RESTORING, NodeState.REPLAYING,
-                                                 NodeState.GATED):
-            gate_ms, gate_reason = (None, None) if self.gate is None else self.gate.finish()
-            timing = rec.s4_release()
-            self.record.last_recovery = (timing['total_ms'], self.sup.clock())
-            self.sm.change_state(NodeState.RUNNING, 'released')
-            pace = (self.current.replay_pace(self.cfg.replay).value if self.cfg.method.logs
-                    else None)
-            say_recovered(rec, self.id, self.sup.events_log, self.gaps, method=self.cfg.method,
-                          incarnation=self.incarnation, timing=timing, stats=stats, pace=pace,
-                          freshness=self.record.freshness, gate_ms=gate_ms,
-                          gate_reason=gate_reason)
-            if rec.ring is None or not rec.ring.active_topics:
-                self._end_recovery()
-        elif self.sm.state in (NodeState.STARTING, NodeState.ARMING):
-            self.sm.change_state(NodeState.RUNNING, 'released')
+        return self.handover.on_call(self.sm.state)
 
     def _end_recovery(self) -> None:
         if self.sm.state == NodeState.GATED:
             # Every topic is live again, but S4 waits for the gate; the release ends it.
             return
-        if self.recovery is not None:
-            # Leaves the safe state if S4 has not: the node exited (status 0) while recovering.
-            self.recovery.finish()
-            self.gaps.report(self.recovery)  # after finish: none is held back any more
-            self.recovery = None
+        # Leaves the safe state if S4 has not: the node exited (status 0) while recovering.
+        self.recoveries.end()
         self.sup.retire_shadow_topics(self.id)
 
     # -- time ---------------------------------------------------------------------------------
@@ -447,7 +335,8 @@ class ManagedNode:
             last_recovery_age_s=age(last[1], now) if last else None,
             last_checkpoint_age_s=age(self.watchdog.last_checkpoint_at, now),
             standby=self.standby.status(),
-            checkpoint_overdue_s=self.checkpoint_overdue(now),
+            checkpoint_overdue_s=self.watchdog.checkpoint_overdue(
+                now, self._checkpointing_since(), self.current.checkpoint_interval()),
             checkpoint_error=self.current.checkpoint_error,
             fatal_reason=record.fatal_reason,
             freshness=record.freshness if self.cfg.method.checkpoints else None,
@@ -460,12 +349,6 @@ class ManagedNode:
             return None
         return self.current.running_since
 
-    def checkpoint_overdue(self, now: float) -> float | None:
-        """Seconds past the time a running node must have checkpointed by, if it is late
-        (``Watchdog.checkpoint_overdue``)."""
-        return self.watchdog.checkpoint_overdue(now, self._checkpointing_since(),
-                                                self.current.checkpoint_interval())
-
     def tick(self, now: float) -> None:
         """Time-driven work: hang detection, SYNC resends, arming, backoff expiry, standby."""
         state, current = self.sm.state, self.current
@@ -475,26 +358,18 @@ class ManagedNode:
                                              current.checkpoint_interval())
         if overdue is not None:
             say_overdue(self.id, overdue, self.sup.events_log)
-        if state == NodeState.RUNNING and self.recovery is not None:
+        if state == NodeState.RUNNING:
             # Released, still relaying until every topic is live again: a gap the relay shows
             # (a message lost between R and the live reader) is said now, not only at the end
             # of a handover that may never end (a topic whose publisher stops).
-            self.gaps.report(self.recovery)
+            self.recoveries.report_gaps()
         if state == NodeState.RUNNING and self.standby.due(now, self.incarnation,
                                                           current.running_since):
             self.standby.prepare(now, self.incarnation)
-        if state == NodeState.GATED and self.gate is not None:
-            given_up = self.gate.tick(now)
-            if given_up is not None:
-                self._give_up(given_up)
         if state == NodeState.BACKOFF and self.restart_at is not None and now >= self.restart_at:
             self._restart()
-        elif state in (NodeState.ARMING, NodeState.REPLAYING):
-            if current.synced_counts is None and now - current.sync_sent >= SYNC_PERIOD:
-                current.send_sync(self.sup.clock())
-            elif (state == NodeState.ARMING and not current.release_sent
-                  and current.armed(self.ring)):
-                current.send_release(self.segments.next_number())  # once; RELEASED answers
+        else:  # SYNC, RELEASE and OPEN resent; the gate's timeout
+            self._take(self.handover.tick(now, current, state, self.inputs.ring))
 
     def _watch(self, now: float) -> None:
         """Crash detection beyond exit codes: act on what the watchdog finds."""
@@ -502,25 +377,11 @@ class ManagedNode:
         if child is None:
             return
         for finding in self.watchdog.check(now, heard=self.current.hello is not None):
-            if isinstance(finding, Beat):
-                # S2 early: only for a running node that logs, not already recovering.
-                ring = self.ring if self.cfg.method.logs else None
-                if (ring is not None and self.sm.state == NodeState.RUNNING
-                        and self.recovery is None):
-                    self.early.on_beat(ring, finding)
-            elif isinstance(finding, Hung):
-                # Say what it was doing. SIGUSR1 for a heartbeat that stopped: faulthandler in
-                # the node prints every thread's stack, where it hung, and SIGKILL follows
-                # (KillDue). SIGKILL at once for a process that never beat.
-                say_hung(self.id, self.incarnation, child.pid, finding,
-                         self.poison.died_on(self.incarnation), self.sup.events_log)
-                child.send_signal(finding.signal)
-            elif isinstance(finding, Unheard):
-                # The process runs but its HELLO never arrived: replace it (a crash, recovered).
-                say_unheard(self.id, self.incarnation, child.pid, finding, self.sup.events_log)
-                child.send_signal(signal.SIGKILL)
-            else:  # KillDue: the hung process has printed its stacks
-                child.send_signal(signal.SIGKILL)
+            if not isinstance(finding, Beat):  # hung, unheard: say it, signal the process
+                enforce(finding, self.id, self.incarnation, child,
+                        lambda: self.poison.died_on(self.incarnation), self.sup.events_log)
+            elif self.sm.state == NodeState.RUNNING and self.recovery is None:
+                self.inputs.on_beat(finding)  # S2 early: running, not already recovering
 
     def stop(self) -> None:
         """Stop the node's process: SIGINT, then SIGTERM, then SIGKILL."""
@@ -528,17 +389,9 @@ class ManagedNode:
             return
         self.sm.change_state(NodeState.STOPPING, 'supervisor stopping')
         self.standby.drop()
-        if self.recovery is not None:
-            # The safe state stays as it is: held if the node had not been released.
-            self.recovery.stop()
-            self.gaps.report(self.recovery)  # after stop: none is held back any more
+        self.recoveries.stop()  # the safe state as it is: held if the node was not released
         if self.current.child is not None:
             stop_child(self.current.child)
         self.current.child = None
         self.sm.change_state(NodeState.STOPPED)
 
-
-def _fields(message: StatusMessage) -> dict[str, Any]:
-    """What a status carries but its kind and node, as it travelled: the fields of the
-    ``hello`` and ``checkpoint`` events."""
-    return {k: v for k, v in message.to_json().items() if k not in ('kind', 'node')}

@@ -12,7 +12,8 @@ import ctypes.util
 import os
 import signal
 import subprocess
-from collections.abc import Mapping, Sequence
+import threading
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Protocol
 
@@ -140,6 +141,13 @@ class PopenLauncher:
 
     def close(self) -> None:
         """Nothing prepared."""
+
+
+def reap(child: Child, label: str, exited: Callable[[int], None]) -> None:
+    """Wait for ``child`` to end on a thread of its own (``rory-reap-<label>``), which hands
+    ``exited`` its exit code."""
+    threading.Thread(target=lambda: exited(child.wait()), name=f'rory-reap-{label}',
+                     daemon=True).start()
 
 
 def describe_exit(code: int) -> str:

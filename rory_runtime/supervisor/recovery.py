@@ -39,6 +39,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from rosbags.interfaces import Qos
@@ -736,6 +737,20 @@ class GapReports:
                 gap.missing, gap.first, gap.last)
             self._events.write('input_gap', self.node_id, **gap.to_json())
         return new
+
+
+def say_resumed(node_id: str, folder: Path, down_since: float | None,
+                events: EventSink) -> None:
+    """A recovery from the store (``folder``) after a supervisor that died with the node: the
+    ``resumed`` event and a warning, with how long its inputs went unrecorded (since
+    ``down_since``, wall-clock seconds, if known)."""
+    gap = None if down_since is None else max(0.0, time.time() - down_since)
+    events.write('resumed', node_id, unrecorded_s=gap)
+    _logger.warning(
+        '%s %s: resuming from %s after a supervisor that did not stop cleanly%s',
+        LOG_PREFIX, node_id, folder,
+        '' if gap is None else f' (inputs unrecorded for up to {gap:.1f} s)',
+    )
 
 
 def recovery_counts(stats: ReleasedStatus) -> dict[str, int]:

@@ -309,7 +309,7 @@ class Supervisor:
             for cfg in self.config.nodes:
                 node = self.nodes[cfg.name] = ManagedNode(self, cfg)
                 # Its release gate's service; its statuses come on the status socket (inbox.py).
-                if node.gate is not None:
+                if node.handover.gate is not None:
                     self._serve_gate(node)
             executor.add_node(self.ros_node)
             spinner.start()

@@ -5,9 +5,10 @@ A node's runtime writes the steady clock into its in-flight slot every 0.2 s (``
 supervisor's clock (``ports.py``), and says what it finds: a process that never beats within
 ``start_timeout``, one that stops beating for ``hang_timeout``, one whose heartbeat is late
 enough to be a hang in the making, one that beats but whose HELLO never reached the supervisor.
-It decides; ``ManagedNode`` acts (signals the process, keeps its inputs; :func:`say_hung` and
-the others below log): the findings are values it gets back from :meth:`Watchdog.check`
-(docs/architecture.md, "Heartbeat" and "At a crash: S1-S4").
+It decides: the findings are values ``ManagedNode`` gets back from :meth:`Watchdog.check`;
+:func:`enforce` acts on those against the process (says them and signals it), and the node
+keeps its inputs on a late :class:`Beat` (docs/architecture.md, "Heartbeat" and "At a crash:
+S1-S4").
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Literal
 
 from ..inflight import InFlight
 from .ports import EventSink
+from .process import Child
 from .states import LOG_PREFIX
 
 _logger = logging.getLogger('rory.supervisor')
@@ -238,7 +240,27 @@ class Watchdog:
         return CheckpointsOverdue(None if last is None else now - last)
 
 
-# -- what the supervisor says of its findings (ManagedNode signals the process) -----------------
+# -- what the supervisor does and says of its findings --------------------------------------------
+
+
+def enforce(finding: Hung | Unheard | KillDue, node_id: str, incarnation: int, child: Child,
+            busy: Callable[[], InFlight | None], events: EventSink) -> None:
+    """Act on a finding against the process ``child``, saying what it was doing (``busy``:
+    the message it was applying, if any).
+
+    SIGUSR1 for a heartbeat that stopped: faulthandler in the node prints every thread's stack,
+    where it hung, and SIGKILL follows (:class:`KillDue`). SIGKILL at once for a process that
+    never beat, and for one that runs but whose HELLO never arrived (replaced: a crash,
+    recovered).
+    """
+    if isinstance(finding, Hung):
+        say_hung(node_id, incarnation, child.pid, finding, busy(), events)
+        child.send_signal(finding.signal)
+    elif isinstance(finding, Unheard):
+        say_unheard(node_id, incarnation, child.pid, finding, events)
+        child.send_signal(signal.SIGKILL)
+    else:  # KillDue: the hung process has printed its stacks
+        child.send_signal(signal.SIGKILL)
 
 
 def say_hung(node_id: str, incarnation: int, pid: int, hung: Hung, busy: InFlight | None,

@@ -435,9 +435,9 @@ def test_a_late_heartbeat_keeps_the_inputs_and_a_hang_hands_them_to_r(tmp_path: 
     assert ring.activations == 1 and isinstance(ring.sinks[0], Capture)  # S2 early
     h.beat()
     h.tick(0.1)  # only slow: the capture is dropped
-    assert h.node.early.capture is None and ring.active_topics == set()
+    assert h.node.inputs.early.capture is None and ring.active_topics == set()
     h.tick(STALL_SUSPECT)
-    capture = h.node.early.capture
+    capture = h.node.inputs.early.capture
     assert capture is not None and ring.activations == 2
     # What the ring takes meanwhile (the node had not logged it).
     taken = LogEntry(INPUT.topic, INPUT.msgtype, 5, 5, 7, b'\x00\x01\x00\x00\x01\x00\x00\x00\x00')
@@ -446,7 +446,7 @@ def test_a_late_heartbeat_keeps_the_inputs_and_a_hang_hands_them_to_r(tmp_path: 
     assert h.child.signals == [signal.SIGUSR1]
     h.tick(HANG_DUMP_GRACE)
     h.reap()
-    assert h.node.early.capture is None and ring.activations == 3
+    assert h.node.inputs.early.capture is None and ring.activations == 3
     rlog = ring.sinks[2]
     assert isinstance(rlog, RecoveryLog) and ring.handed_over[2] == [taken]
     assert rlog.entries == [taken] and h.sup.safety.log == HELD
@@ -460,11 +460,11 @@ def test_a_starved_node_beating_late_is_never_taken_for_crashed(tmp_path: Path) 
     (ring,) = h.sup.rings
     for _ in range(12):
         h.tick(STALL_SUSPECT)
-        assert h.node.early.capture is not None
+        assert h.node.inputs.early.capture is not None
         h.tick(5.0 - STALL_SUSPECT - 0.01)  # 4.99 s without a beat
         h.beat()
         h.tick(0.0)
-        assert h.node.early.capture is None and ring.active_topics == set()
+        assert h.node.inputs.early.capture is None and ring.active_topics == set()
     assert h.child.signals == [] and h.sup.safety.log == []
     assert h.state() == S.RUNNING and h.node.recovery is None
     assert not any(h.sup.events_log.of(kind) for kind in ('hang', 'exit', 'recovered'))

@@ -5,11 +5,15 @@ checkpoints overdue. No process, no ROS."""
 from __future__ import annotations
 
 import signal
+import time
 from pathlib import Path
 from typing import cast
 
 import pytest
+from fake_supervisor import FakeChild, FakeClock, FakeEvents
 
+from rory_runtime.inflight import InFlight
+from rory_runtime.supervisor.process import reap
 from rory_runtime.supervisor.watchdog import (
     HANG_DUMP_GRACE,
     HELLO_TIMEOUT,
@@ -21,6 +25,7 @@ from rory_runtime.supervisor.watchdog import (
     KillDue,
     Unheard,
     Watchdog,
+    enforce,
 )
 
 SLOT = Path('/nonexistent/slot')
@@ -195,3 +200,32 @@ def test_a_new_process_may_be_said_overdue_again() -> None:
     assert dog.overdue_news(beats.advance(10.0), released, 2.0) is not None
     dog.watch()
     assert dog.overdue_news(beats.advance(1.0), released, 2.0) is not None
+
+
+def test_enforcing_a_finding_says_it_then_signals_the_process() -> None:
+    events = FakeEvents(FakeClock())
+    child = FakeChild(7, ['node'], {})
+    busy: list[InFlight | None] = []
+
+    def applying() -> InFlight | None:
+        busy.append(None)
+        return None
+
+    enforce(Hung('heartbeat', 5.0, 5.0, signal.SIGUSR1), 'n', 2, child, applying, events)
+    assert child.signals == [signal.SIGUSR1] and len(busy) == 1
+    assert events.of('hang')[0]['waiting_for'] == 'heartbeat'
+    enforce(KillDue(), 'n', 2, child, applying, events)
+    enforce(Unheard(11.0), 'n', 2, child, applying, events)
+    assert child.signals == [signal.SIGUSR1, signal.SIGKILL, signal.SIGKILL]
+    assert events.of('unheard')[0]['beating_s'] == 11.0 and len(busy) == 1
+
+
+def test_a_reaped_process_hands_its_exit_code_over_from_its_own_thread() -> None:
+    child = FakeChild(7, ['node'], {})
+    codes: list[int] = []
+    reap(child, 'n', codes.append)
+    child.finish(3)
+    deadline = time.monotonic() + 5.0
+    while not codes and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert codes == [3]

@@ -1,11 +1,18 @@
 """Shared fixtures. Tests that start ROS processes must not hear each other: each gets its own
-ROS_DOMAIN_ID (disjoint ranges per pytest-xdist worker) and discovery stays on localhost."""
+ROS_DOMAIN_ID (disjoint ranges per pytest-xdist worker) and discovery stays on localhost.
+
+Tests that start ROS processes are marked ``ros``; `make unit` runs the others (-m 'not ros').
+A test not marked ``ros`` runs with a ROS_DOMAIN_ID that is not a number (no_ros_process): a
+process it starts with its environment (every unmarked test's processes do, 2026-11-28) that
+joins ROS (rclpy.init, a node, the supervisor) fails at rcl's init ("ROS_DOMAIN_ID is not an
+integral number") instead of passing unmarked. Importing rclpy, serializing messages, and an
+in-process context made with an explicit domain_id (the ros_domain fixture) stay allowed."""
 
 from __future__ import annotations
 
 import itertools
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -24,6 +31,21 @@ _PER_WORKER = int(os.environ.get('RORY_TEST_DOMAIN_SPAN', '30'))
 def _domain(worker_id: str) -> int:
     slot = 0 if worker_id == 'master' else int(worker_id.removeprefix('gw')) + 1
     return _BASE + slot * _PER_WORKER + next(_next) % _PER_WORKER
+
+
+NO_ROS_DOMAIN = 'none: a test not marked ros starts no ROS process'
+
+
+@pytest.fixture(autouse=True)
+def no_ros_process(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Unless the test is marked ros, the processes it starts inherit a ROS_DOMAIN_ID that
+    rcl refuses."""
+    if request.node.get_closest_marker('ros') is not None:
+        yield
+        return
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv('ROS_DOMAIN_ID', NO_ROS_DOMAIN)
+        yield
 
 
 @pytest.fixture

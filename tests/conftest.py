@@ -87,11 +87,13 @@ SIMULATOR_TESTS = frozenset({
     'targets/test_navigator_sim.py',
 })
 # Modules whose tests share results computed once per process (functools.cache: a whole
-# route driven through a target's core, e.g. test_graph_slam_core's route_run). Handed out one
-# test at a time, their tests landed on both workers and each computed the same routes (68 s
-# of test time for graph_slam_core's, 38 s in one process): each runs on one worker.
+# route driven through a target's core, e.g. test_graph_slam_core's route_run; or a
+# module-scoped fixture, test_depth_mapper_core's real_room_run). Handed out one test at a
+# time, their tests landed on both workers and each computed the same routes (68 s of test
+# time for graph_slam_core's, 38 s in one process): each runs on one worker.
 SHARED_CACHE_TESTS = frozenset({
     'targets/test_amcl_core.py',
+    'targets/test_depth_mapper_core.py',
     'targets/test_graph_slam_core.py',
     'targets/test_grid_slam_core.py',
     'targets/test_lama_local_core.py',

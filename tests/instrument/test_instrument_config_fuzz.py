@@ -5,6 +5,7 @@ from __future__ import annotations
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from hypothesis_budget import examples
 
 from rory_instrument.config import KeyVars, parse_keyvars
 from rory_instrument.errors import ConfigError
@@ -41,19 +42,19 @@ def _parse(text: str) -> None:
     assert isinstance(result, KeyVars)
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(300), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(documents)
 def test_structured_documents_parse_or_raise_config_error(doc: object) -> None:
     _parse(yaml.safe_dump(doc, allow_unicode=True))
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(st.text(max_size=200))
 def test_any_text_parses_or_raises_config_error(text: str) -> None:
     _parse(text)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.sampled_from([
     'nodes:\n  - file: a.py\n    class: A\n    vars: [x]\n',
     'nodes:\n  - file: a.py\n    module_vars: [x, y]\n    replay: fast\n',

@@ -19,6 +19,7 @@ import libcst as cst
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_budget import examples
 
 from rory_instrument.config import STALE_ACTIONS, FreshnessRule, KeyVars, Mark, NodeSpec
 from rory_instrument.manifest import manifest_digest
@@ -793,7 +794,7 @@ def test_checkpoint_key_prefix_is_the_runtimes() -> None:
     assert CHECKPOINT_GLOBAL_PREFIX == GLOBAL_PREFIX
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(
     ages=st.lists(
         st.floats(min_value=5e-324, allow_nan=False, allow_infinity=False), min_size=1,
@@ -868,7 +869,7 @@ def test_crlf_module_call() -> None:
     )
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(
     docstring=st.booleans(),
     imports=st.lists(

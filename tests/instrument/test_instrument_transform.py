@@ -16,6 +16,7 @@ import libcst as cst
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_budget import examples
 
 from rory_instrument.config import KeyVars, Mark, NodeSpec
 from rory_instrument.errors import ConfigError, SourceError
@@ -910,7 +911,7 @@ def test_syntax_error_reports_python_position() -> None:
     assert str(raised.value) == 'node.py:2:7: syntax error: invalid syntax'
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(
     vars=st.lists(st.sampled_from(['a', 'b', 'c', 'd']), min_size=1, unique=True),
     decorators=st.lists(st.sampled_from(['@final', '@register()', '# note']), max_size=3),

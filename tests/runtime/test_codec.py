@@ -18,6 +18,7 @@ import pytest
 from geometry_msgs.msg import Point, Pose, Quaternion
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_budget import examples
 from rclpy.node import Node
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import LaserScan
@@ -312,20 +313,20 @@ values = st.recursive(
 )
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(values)
 def test_property_roundtrip(value: object) -> None:
     assert same(roundtrip(value), value)
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=examples(100), deadline=None)
 @given(st.dictionaries(st.text(max_size=10), values, max_size=5))
 def test_property_vars_roundtrip(variables: dict[str, object]) -> None:
     decoded = decode_vars(encode_vars(variables))
     assert same(decoded, variables)
 
 
-@settings(max_examples=1000, deadline=None)
+@settings(max_examples=examples(1000), deadline=None)
 @given(st.binary(max_size=64))
 def test_fuzz_random_bytes_decode_or_codec_error(data: bytes) -> None:
     for decoder in (decode, decode_vars):
@@ -333,7 +334,7 @@ def test_fuzz_random_bytes_decode_or_codec_error(data: bytes) -> None:
             decoder(data)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(
     st.binary(min_size=1, max_size=64),
     st.integers(EXT_TUPLE, 16),  # every extension type the codec knows
@@ -698,7 +699,7 @@ _packable = st.recursive(
 )
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=examples(500), deadline=None)
 @given(_packable, st.integers(EXT_TUPLE, 16))
 def test_fuzz_well_formed_msgpack_in_every_extension(payload: object, code: int) -> None:
     # Structured payloads get past the msgpack layer and exercise each type's own checks.

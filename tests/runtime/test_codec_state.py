@@ -34,6 +34,7 @@ import rclpy.timer
 from geometry_msgs.msg import Point, Pose
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_budget import examples
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.clock_type import ClockType
 from rclpy.duration import Duration
@@ -914,13 +915,13 @@ state_values = st.recursive(
 )
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(state_values)
 def test_property_roundtrip_of_state_types(value: object) -> None:
     assert same(roundtrip(value), value)
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=examples(100), deadline=None)
 @given(st.dictionaries(st.text(max_size=8), state_values, max_size=4))
 def test_property_vars_roundtrip_of_state_types(variables: dict[str, object]) -> None:
     assert same(decode_vars(encode_vars(variables)), variables)
@@ -929,7 +930,7 @@ def test_property_vars_roundtrip_of_state_types(variables: dict[str, object]) ->
 NEW_CODES = [EXT_ENUM, EXT_DATACLASS, EXT_TIME, EXT_DURATION, EXT_DEQUE, EXT_ORDEREDDICT]
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=examples(500), deadline=None)
 @given(st.binary(max_size=64), st.sampled_from(NEW_CODES))
 def test_fuzz_random_payloads_of_new_types(payload: bytes, code: int) -> None:
     with contextlib.suppress(CodecError):
@@ -951,14 +952,14 @@ keys = st.one_of(
 )
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=examples(500), deadline=None)
 @given(names, qualnames, keys)
 def test_fuzz_structured_enum_payloads(module: object, qualname: object, key: object) -> None:
     with contextlib.suppress(CodecError):
         assert isinstance(decode(ext(EXT_ENUM, [module, qualname, key])), enum.Enum)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(names, qualnames, st.dictionaries(st.text(max_size=3) | st.sampled_from('xyab'), keys))
 def test_fuzz_structured_dataclass_payloads(
     module: object, qualname: object, fields: dict[str, object]

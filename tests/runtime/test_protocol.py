@@ -12,6 +12,7 @@ import sys
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_budget import examples
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import UInt8MultiArray
@@ -344,7 +345,7 @@ def _unpack_or_protocol_error(raw: bytes) -> None:
     assert isinstance(env, Sync | Msg | Release | Open | Alive)
 
 
-@settings(max_examples=300, deadline=None, derandomize=True)
+@settings(max_examples=examples(300), deadline=None, derandomize=True)
 @given(st.binary(max_size=96))
 def test_arbitrary_bytes_unpack_or_raise_protocol_error(raw: bytes) -> None:
     _unpack_or_protocol_error(raw)
@@ -371,7 +372,7 @@ def envelope_like(draw: st.DrawFn) -> bytes:
     return wrap(payload, declared=declared, ndim=ndim) + padding
 
 
-@settings(max_examples=500, deadline=None, derandomize=True)
+@settings(max_examples=examples(500), deadline=None, derandomize=True)
 @given(envelope_like())
 def test_envelope_like_bytes_unpack_or_raise_protocol_error(raw: bytes) -> None:
     _unpack_or_protocol_error(raw)

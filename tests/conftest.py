@@ -10,27 +10,61 @@ in-process context made with an explicit domain_id (the ros_domain fixture) stay
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import os
+import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import IO
 
 import pytest
 
 _next = itertools.count()
-# Two pytest sessions on one machine at once (two checkouts, two developers) must not share
-# domains: give the second one another base and span, e.g. RORY_TEST_DOMAIN_BASE=40
-# RORY_TEST_DOMAIN_SPAN=20. Keep every id <= 100: a domain's ports are 7400 + 250 x id, and
-# above 100 they lie in Linux's ephemeral range (32768-60999), which every outgoing socket
-# draws from. At base 150, while an evaluation ran, one replay test saw five restarts in a row
-# never heard by the supervisor; at base 40 it passed.
-_BASE = int(os.environ.get('RORY_TEST_DOMAIN_BASE', '10'))
-_PER_WORKER = int(os.environ.get('RORY_TEST_DOMAIN_SPAN', '30'))
+# Keep every id <= 100: a domain's ports are 7400 + 250 x id, and above 100 they lie in
+# Linux's ephemeral range (32768-60999), which every outgoing socket draws from. At base 150,
+# while an evaluation ran, one replay test saw five restarts in a row never heard by the
+# supervisor; at base 40 it passed.
+_FIRST_ID, _END_ID = 10, 100
+_SPAN = 15
+# Two pytest sessions on one machine at once (two checkouts, two developers, two xdist
+# workers) must not share domains: each process that needs one claims a range of _SPAN ids
+# with an exclusive lock on a file under _CLAIMS, held until the process ends. Sessions that
+# shared default ranges crossed their messages (a node "applied twice" numbers another
+# session's publisher sent). RORY_TEST_DOMAIN_BASE and RORY_TEST_DOMAIN_SPAN, when set, give
+# the ranges instead (base + slot x span per worker), unlocked.
+_CLAIMS = Path(tempfile.gettempdir()) / 'rory-test-domains'
+_claimed: list[tuple[int, int]] = []  # this process's (base, span), once claimed
+_claim_files: list[IO[bytes]] = []  # held open: closing one would release its lock
+
+
+def _range(worker_id: str) -> tuple[int, int]:
+    if _claimed:
+        return _claimed[0]
+    if 'RORY_TEST_DOMAIN_BASE' in os.environ:
+        base = int(os.environ['RORY_TEST_DOMAIN_BASE'])
+        span = int(os.environ.get('RORY_TEST_DOMAIN_SPAN', '30'))
+        slot = 0 if worker_id == 'master' else int(worker_id.removeprefix('gw')) + 1
+        _claimed.append((base + slot * span, span))
+        return _claimed[0]
+    _CLAIMS.mkdir(exist_ok=True)
+    for base in range(_FIRST_ID, _END_ID - _SPAN + 1, _SPAN):
+        claim = (_CLAIMS / f'{base}.lock').open('ab')
+        try:
+            fcntl.flock(claim, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            claim.close()
+            continue
+        _claim_files.append(claim)
+        _claimed.append((base, _SPAN))
+        return _claimed[0]
+    raise RuntimeError(f'every range of ROS domain ids {_FIRST_ID}-{_END_ID - 1} is held by '
+                       f'another test process ({_CLAIMS}); set RORY_TEST_DOMAIN_BASE')
 
 
 def _domain(worker_id: str) -> int:
-    slot = 0 if worker_id == 'master' else int(worker_id.removeprefix('gw')) + 1
-    return _BASE + slot * _PER_WORKER + next(_next) % _PER_WORKER
+    base, span = _range(worker_id)
+    return base + next(_next) % span
 
 
 NO_ROS_DOMAIN = 'none: a test not marked ros starts no ROS process'

@@ -2,12 +2,13 @@
 small nodes supervised and no traffic (issue 36).
 
     python -m rory_eval.bench.rest_bench [--runs 5] [--seconds 30] [--nodes 6] [--domain 7]
-                                         [--standbys N] [--out DIR]
+                                         [--standbys N] [--no-spare-forks] [--out DIR]
 
 What a robot pays for RORY while nothing happens is its fixed processes: the supervisor (an
 interpreter with rclpy, its participant and the ring's readers), the zygote (the fork server)
 and the standbys (forks that have made their participants and wait; the pool's default size
-for six nodes is 3, ``--standbys`` sets it). Each run starts one
+for six nodes is 3, ``--standbys`` sets it) with their spare forks (one for each node beyond
+the pool, ``--no-spare-forks`` turns them off). Each run starts one
 ``rory supervise`` config with ``--nodes`` copies of the example integrator (examples/integrator,
 instrumented as rory_eval/harness/scenario.py ``prepare`` does), each with its own node name
 and remapped topics (``/numbers_<i>``, ``/integrator_<i>/state``) so that the supervisor keeps
@@ -76,10 +77,11 @@ def node_name(i: int) -> str:
     return f'integrator_{i}'
 
 
-def write_config(workdir: Path, nodes: int, standbys: int | None = None) -> Path:
+def write_config(workdir: Path, nodes: int, standbys: int | None = None,
+                 spare_forks: bool = True) -> Path:
     """The integrator instrumented into ``workdir`` and a config with ``nodes`` copies of it,
-    each with its own node name and topics, and ``standbys`` (None: the default pool); the
-    config's path."""
+    each with its own node name and topics, ``standbys`` (None: the default pool) and
+    ``spare_forks``; the config's path."""
     path = prepare(workdir, 'rory', interval=None, pace=None)
     config: dict[str, Any] = yaml.safe_load(path.read_text())
     (node,) = config['nodes']
@@ -92,6 +94,8 @@ def write_config(workdir: Path, nodes: int, standbys: int | None = None) -> Path
     ]
     if standbys is not None:
         config['standbys'] = standbys
+    if not spare_forks:
+        config['spare_forks'] = False
     path.write_text(yaml.safe_dump(config, sort_keys=False))
     return path
 
@@ -208,14 +212,14 @@ def other_users(libraries: Sequence[str], ours: set[int], *,
 
 
 def run_once(workdir: Path, domain: int, nodes: int, seconds: float,
-             standbys: int | None = None) -> dict[str, Any]:
+             standbys: int | None = None, spare_forks: bool = True) -> dict[str, Any]:
     """One run: start the supervisor with ``nodes`` integrators, wait until all run and the
     standby pool is ready, measure its tree over ``seconds``; usage per role
     (TreeUsage.to_json)."""
     workdir = workdir.resolve()
     # A run of an earlier invocation into the same --out: its events would be read as this one's.
     shutil.rmtree(workdir / 'store-rory', ignore_errors=True)
-    config = write_config(workdir, nodes, standbys)
+    config = write_config(workdir, nodes, standbys, spare_forks)
     pool = pool_size(nodes, standbys)
     events = EventsFile(workdir / 'store-rory' / 'events.jsonl')
     names = [node_name(i) for i in range(1, nodes + 1)]
@@ -269,7 +273,8 @@ def run_once(workdir: Path, domain: int, nodes: int, seconds: float,
         kinds[ev['kind']] = kinds.get(ev['kind'], 0) + 1
     roles = usage.to_json()
     counts = {role: roles.get(role, {}).get('processes', 0) for role in ROLES}
-    spares = max(0, nodes - pool)  # one for each node beyond the pool (supervisor/standby.py)
+    # one for each node beyond the pool (supervisor/standby.py)
+    spares = max(0, nodes - pool) if spare_forks else 0
     if counts != {'supervisor': 1, 'zygote': 1, 'standby': pool, 'spare': spares,
                   'node': nodes}:
         raise RuntimeError(f'not the processes of a supervisor at rest: {counts}')
@@ -388,6 +393,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--domain', type=int, default=7)
     parser.add_argument('--standbys', type=int, default=None,
                         help="the supervisor's standby pool (default: the config's default)")
+    parser.add_argument('--no-spare-forks', dest='spare_forks', action='store_false',
+                        help='the config says spare_forks: false')
     parser.add_argument('--out', help='keep the runs and rest.json here')
     args = parser.parse_args(argv)
     if args.runs < 1 or args.seconds <= 0 or args.nodes < 1 or (
@@ -397,7 +404,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     runs: list[dict[str, Any]] = []
     for i in range(args.runs):
         result = run_once(root / f'run{i}', args.domain, args.nodes, args.seconds,
-                          args.standbys)
+                          args.standbys, args.spare_forks)
         runs.append(result)
         roles = result['roles']
         print(f'[{i + 1}/{args.runs}] fixed {result["fixed"]["cpu_percent"]:.2f} % of a core, '

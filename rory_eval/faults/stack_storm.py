@@ -44,6 +44,7 @@ arguments.
 
     python -m rory_eval.faults.stack_storm --runs 3 [--world real_room] [--out DIR]
         [--standbys N]   # the pool's size; default the supervisor's (3 for six nodes)
+        [--no-spare-forks]   # spare_forks: false (default: a spare for each node beyond it)
         [--reference rory|bare]   # the reference run (default: rory supervise, not struck)
 """
 
@@ -100,9 +101,11 @@ def node_argv(name: str, world: str) -> list[str]:
     return target.argv(world, *remap)
 
 
-def storm_config(world: str, out: Path, instrumented: Path, standbys: int | None = None) -> Path:
+def storm_config(world: str, out: Path, instrumented: Path, standbys: int | None = None,
+                 spare_forks: bool = True) -> Path:
     """One supervisor config for the six, each its instrumented copy, /e_stop held;
-    ``standbys``: the pool's size (None: the supervisor's default)."""
+    ``standbys``: the pool's size (None: the supervisor's default); ``spare_forks``: the
+    config's."""
     nodes = []
     for name in STACK:
         argv = node_argv(name, world)
@@ -117,6 +120,7 @@ def storm_config(world: str, out: Path, instrumented: Path, standbys: int | None
         'store': str(out / 'store'),
         'prefix_output': True,
         **({} if standbys is None else {'standbys': standbys}),
+        **({} if spare_forks else {'spare_forks': False}),
     }
     out.mkdir(parents=True, exist_ok=True)
     path = out / 'stack.yaml'
@@ -359,19 +363,21 @@ def describe(storm: Storm) -> str:
 # -- the runs ---------------------------------------------------------------------------------
 
 def run_pair(world: str, out: Path, *, domain_id: int, seed: int, repetition: int,
-             standbys: int | None = None,
+             standbys: int | None = None, spare_forks: bool = True,
              reference_method: str = METHOD) -> tuple[Storm, dict[str, Any]]:
     """The storm, then its reference (the robot stopped as in the storm), both in ``out``;
     judged. Every process is reaped."""
     spec = _base_spec(world, seed, repetition)
     storm_dir = out / 'storm'
     details = _stack_run(METHOD, world, storm_dir, domain_id=domain_id, seed=seed, spec=spec,
-                         instrumented=out.parent / 'instrumented', standbys=standbys)
+                         instrumented=out.parent / 'instrumented', standbys=standbys,
+                         spare_forks=spare_forks)
     details['stops'] = stops_of(storm_dir / 'run' / 'sim.log')
     reference = out / 'reference'
     replayed = _stack_run(reference_method, world, reference, domain_id=domain_id, seed=seed,
                           spec=spec, instrumented=out.parent / 'instrumented',
-                          standbys=standbys, stops=details['stops'], strike=False)
+                          standbys=standbys, spare_forks=spare_forks, stops=details['stops'],
+                          strike=False)
     details['reference_stops'] = stops_of(reference / 'run' / 'sim.log')
     details['errors'] += [f'reference: {e}' for e in replayed['errors']]
     verdicts = judge_targets([(storm_dir / n, reference / n) for n in STACK])
@@ -388,7 +394,7 @@ def _base_spec(world: str, seed: int, repetition: int) -> dict[str, Any]:
 
 def _stack_run(method: str, world: str, out: Path, *, domain_id: int, seed: int,
                spec: dict[str, Any], instrumented: Path | None = None,
-               standbys: int | None = None,
+               standbys: int | None = None, spare_forks: bool = True,
                stops: Sequence[tuple[float, float | None]] = (),
                strike: bool = True) -> dict[str, Any]:
     """One run of the six, bare or under one supervisor (struck unless ``strike`` is
@@ -413,7 +419,7 @@ def _stack_run(method: str, world: str, out: Path, *, domain_id: int, seed: int,
     striker = None
     if rory:
         assert instrumented is not None
-        config = storm_config(world, out, instrumented, standbys)
+        config = storm_config(world, out, instrumented, standbys, spare_forks)
         pool = load_config(config).standby_pool_size
         run.add_node('supervisor', [sys.executable, '-m', 'rory_runtime.cli', 'supervise',
                                     str(config)])
@@ -532,6 +538,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                              'the six bare')
     parser.add_argument('--standbys', type=int, default=None,
                         help="the standby pool's size (default: the supervisor's, 3 for six)")
+    parser.add_argument('--no-spare-forks', dest='spare_forks', action='store_false',
+                        help='the config says spare_forks: false')
     parser.add_argument('--domain', type=int, default=95, help='ROS domain id to use')
     parser.add_argument('--out', type=Path,
                         help='keep the runs here (default: a temporary folder, kept on failure)')
@@ -577,9 +585,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         began = time.monotonic()
         storm, details = run_pair(args.world, folder, domain_id=args.domain,
                                   seed=args.seed + i, repetition=i, standbys=args.standbys,
+                                  spare_forks=args.spare_forks,
                                   reference_method=args.reference)
         storms.append(storm)
         record.append({'run': i, 'seed': args.seed + i, 'pool': details['pool'],
+                       'spare_forks': args.spare_forks,
                        'reference': args.reference,
                        'struck_at': details['struck_at'], 'kills': details['kills'],
                        'safe_heard': details['safe'], 'stops': details['stops'],

@@ -25,6 +25,7 @@ Example::
     dds: fast_rediscovery         # fast_rediscovery (default) | inherit
     standbys: 3                   # warm standbys kept for the nodes that share an rclpy.init
                                   # (default: one per node with warm_standby, at most 3)
+    spare_forks: true             # a fork held ready for each node beyond the standbys
     prefix_output: true           # node lines as "[name] ..." (default: with several nodes)
 
 Every error names the file and the field (``nodes[0].method``).
@@ -136,6 +137,9 @@ class SupervisorConfig:
     # Warm standbys kept per rclpy.init signature (supervisor/standby.py); None: the default,
     # :attr:`standby_pool_size`.
     standbys: int | None = None
+    # A spare fork for each node beyond the pool (supervisor/standby.py, StandbyPool): its
+    # start after a crash takes no round trip to the zygote on the main loop.
+    spare_forks: bool = True
 
     @property
     def standby_pool_size(self) -> int:
@@ -248,7 +252,7 @@ def parse_config(doc: Any, path: Path, folder: Path) -> SupervisorConfig:
         ConfigError: A field is invalid.
     """
     top = _Fields(path, '', doc, {'nodes', 'safe_state', 'store', 'dds', 'keep_runs', 'standbys',
-                                  'prefix_output'})
+                                  'spare_forks', 'prefix_output'})
 
     nodes_raw = top.required('nodes')
     if not isinstance(nodes_raw, list) or not nodes_raw:
@@ -288,9 +292,13 @@ def parse_config(doc: Any, path: Path, folder: Path) -> SupervisorConfig:
                                  or standbys < 1):
         raise top.error('standbys', f'must be a positive integer (warm_standby: false on a '
                                     f'node turns its standby off), got {standbys!r}')
+    spare_forks = top.obj.get('spare_forks', True)
+    if not isinstance(spare_forks, bool):
+        raise top.error('spare_forks', f'must be true or false, got {spare_forks!r}')
     return SupervisorConfig(
         path=path, folder=folder, nodes=nodes, safe_state=safe, store=store, dds=dds,
         keep_runs=keep_runs, prefix_output=prefix_output, standbys=standbys,
+        spare_forks=spare_forks,
     )
 
 

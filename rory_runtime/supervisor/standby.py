@@ -190,19 +190,24 @@ class ForkLauncher:
         output: Prefixes every process's output lines with its label; None: processes write
             to the supervisor's own stdout and stderr.
         pool_size: Standbys kept waiting per init signature.
+        spares: Whether each pool also keeps its spare forks (:class:`StandbyPool`).
     """
 
     def __init__(self, zygote: Zygote | None,
                  clock: Callable[[], float] = time.monotonic,
                  output: OutputPrefixer | None = None,
-                 pool_size: int = 1) -> None:
+                 pool_size: int = 1, spares: bool = True) -> None:
         self.zygote = zygote
         self._clock = clock
         self.output = output
         self.pool_size = pool_size
+        self.spares_kept = spares
         self._pools: dict[Hashable, StandbyPool] = {}
         self._lock = threading.Lock()
         self._exec = PopenLauncher()
+
+    def _spares_wanted(self, pool: StandbyPool) -> int:
+        return pool.spares_wanted(self.pool_size) if self.spares_kept else 0
 
     def _forkable(self, argv: Sequence[str],
                   env: Mapping[str, str]) -> tuple[Hashable | None, str]:
@@ -240,7 +245,7 @@ class ForkLauncher:
                 pool.taken_at = now
             waits = pool.taken_at is not None and now - pool.taken_at < REFILL_DELAY
             missing = 0 if waits else self.pool_size - len(pool.waiting)
-            spares_missing = 0 if waits else pool.spares_wanted(self.pool_size) - len(pool.spares)
+            spares_missing = 0 if waits else self._spares_wanted(pool) - len(pool.spares)
         for standby in dead:
             _logger.warning('%s %s pid %d had ended (%s); another takes its place', LOG_PREFIX,
                             'standby' if standby.child.warm else 'spare fork', standby.pid,
@@ -268,7 +273,7 @@ class ForkLauncher:
                 if _key(argv, cwd) in pool.wanted_by:
                     held = (*pool.waiting, *pool.spares)
                     return (len(pool.waiting) >= self.pool_size
-                            and len(pool.spares) >= pool.spares_wanted(self.pool_size)
+                            and len(pool.spares) >= self._spares_wanted(pool)
                             and all(s.child.poll() is None for s in held))
         return False
 
@@ -408,7 +413,7 @@ class ForkLauncher:
                     gone = self._pools.pop(signature)
                     drop.extend((*gone.waiting, *gone.spares))
                     continue
-                while len(pool.spares) > pool.spares_wanted(self.pool_size):
+                while len(pool.spares) > self._spares_wanted(pool):
                     drop.append(pool.spares.pop())
         for standby in drop:
             standby.drop()

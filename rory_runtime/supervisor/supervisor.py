@@ -256,7 +256,8 @@ class Supervisor:
             _logger.warning('%s no fork server (%s); every node starts with exec, cold',
                             LOG_PREFIX, err)
             return
-        self.launcher = ForkLauncher(zygote, pool_size=self.config.standby_pool_size)
+        self.launcher = ForkLauncher(zygote, pool_size=self.config.standby_pool_size,
+                                         spares=self.config.spare_forks)
 
     def run(self) -> int:
         """Supervise until stopped. Returns the process exit code."""

@@ -359,3 +359,17 @@ def test_twenty_storms_with_spares_leave_no_process_behind(zygote: FakeZygote) -
         node.wait(timeout=5)
     assert zygote.alive() == []
     launcher.close()
+
+
+def test_without_spare_forks_a_node_beyond_the_pool_is_forked_cold(zygote: FakeZygote) -> None:
+    launcher = ForkLauncher(cast(Zygote, zygote), clock=FakeClock(), pool_size=2, spares=False)
+    _prepare_all(launcher, FOUR)
+    assert launcher.spares(FOUR[0], Path('/')) == [] and launcher.full(FOUR[0], Path('/'))
+    children = [cast(PidChild, launcher.spawn(argv, _env(), Path('/'))) for argv in FOUR]
+    assert [c.warm for c in children] == [True, True, False, False]
+    assert sorted(c.pid for c in children[2:]) == sorted(zygote.nodes)
+    launcher.close()
+    for child in children:
+        child.send_signal(9)
+        child.wait(timeout=5)
+    assert zygote.alive() == []

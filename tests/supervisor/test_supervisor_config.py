@@ -510,3 +510,11 @@ def test_the_standby_pool_holds_one_per_node_that_wants_one_up_to_three(tmp_path
     for bad in ('0', 'true', '1.5', 'all'):
         err = refusal(write(tmp_path, nodes(1) + f'standbys: {bad}\n'))
         assert err.field == 'standbys' and 'positive integer' in err.reason
+
+
+def test_spare_forks_are_on_unless_turned_off(tmp_path: Path) -> None:
+    two = 'nodes: [{name: a, command: [x]}, {name: b, command: [y]}]\n'
+    assert load_config(write(tmp_path, two)).spare_forks
+    assert not load_config(write(tmp_path, two + 'spare_forks: false\n')).spare_forks
+    err = refusal(write(tmp_path, two + 'spare_forks: 2\n'))
+    assert err.field == 'spare_forks' and 'true or false' in err.reason

@@ -112,6 +112,22 @@ def feed(slam: GraphSlam, events: Iterable[Event]) -> list[ScanOutcome]:
     return outcomes
 
 
+RESTORE_END_NS = 55_000_000_000  # test_keyvars_restore_the_graph_exactly replays up to 55 s
+
+
+@dataclass(frozen=True)
+class RestorePoint:
+    """The run at the checkpoint (8/11 of the messages up to 55 s: at 40 s in real_room, after
+    the first loop closures) and what it gave from there to 55 s."""
+
+    checkpoint: bytes  # keyvars.yaml's variables through RORY's codec, at the cut
+    loop_closures: int  # at the cut
+    tail: list[Event]  # the messages after the cut, up to 55 s
+    after: list[tuple[Any, ...]]  # _summary of what the tail gave
+    hits: np.ndarray  # the grid's hits at 55 s
+    edges: list[tuple[int, int, EdgeKind, np.ndarray]]  # at 55 s
+
+
 @dataclass(frozen=True)
 class RouteRun:
     """What a whole route gave."""
@@ -120,6 +136,7 @@ class RouteRun:
     outcomes: list[ScanOutcome]
     errors: np.ndarray  # position error per scan (m)
     score: MapScore
+    restore: RestorePoint
 
 
 def estimated_map(slam: GraphSlam) -> OccupancyMap:
@@ -131,7 +148,21 @@ def estimated_map(slam: GraphSlam) -> OccupancyMap:
 def route_run(world_name: str, **changes: Any) -> RouteRun:
     rec = drive(world_name)
     slam = GraphSlam(config_for(world_name, **changes))
-    outcomes = feed(slam, rec.events)
+    # Fed in three parts, the same messages in the same order as at once: the restore test
+    # checkpoints this run at the cut instead of driving its first 55 s again.
+    end = sum(1 for e in rec.events if e.stamp_ns <= RESTORE_END_NS)
+    cut = end * 8 // 11
+    outcomes = feed(slam, rec.events[:cut])
+    holder = SimpleNamespace(slam=slam)
+    checkpoint = codec.encode_vars({p: _get(holder, p) for p in _keyvar_paths()})
+    loop_closures = slam.loop_closure_count()
+    tail_outcomes = feed(slam, rec.events[cut:end])
+    restore = RestorePoint(checkpoint, loop_closures, rec.events[cut:end],
+                           _summary(tail_outcomes), slam.grid.hits.copy(),
+                           [(e.source, e.target, e.kind, e.measurement.copy())
+                            for e in slam.edges])
+    outcomes += tail_outcomes
+    outcomes += feed(slam, rec.events[end:])
     assert [o.stamp_ns for o in outcomes] == [e.stamp_ns for e in rec.events
                                               if e.ranges is not None]
     assert all(o.pose is not None for o in outcomes)
@@ -139,7 +170,7 @@ def route_run(world_name: str, **changes: Any) -> RouteRun:
                  for o in outcomes if o.pose is not None]
     errors = position_errors(estimates, rec.truth)
     score = map_score(estimated_map(slam), ground_truth_map(get_world(world_name)), tolerance=1)
-    return RouteRun(slam, outcomes, errors, score)
+    return RouteRun(slam, outcomes, errors, score, restore)
 
 
 # -- quality over the routes -----------------------------------------------------------------
@@ -465,26 +496,24 @@ def test_keyvars_restore_the_graph_exactly() -> None:
     # A checkpoint is keyvars.yaml's variables through RORY's codec. Restored into a fresh
     # node mid-route (after loop closures), replaying the rest must give identical poses,
     # keyframes, edges and grid: the ICP reference cache is rebuilt from the keyframes.
-    events = [e for e in drive('real_room').events if e.stamp_ns <= 55_000_000_000]
-    cut = len(events) * 8 // 11  # at 40 s, after the first loop closures (from 34 s)
+    # The original is real_room's route run, checkpointed at 40 s (RestorePoint), compared
+    # at 55 s.
+    original = route_run('real_room').restore
+    assert original.loop_closures > 0  # the first loop closures come from 34 s
     cfg = config_for('real_room')
-    original = SimpleNamespace(slam=GraphSlam(cfg))
-    feed(original.slam, events[:cut])
-    assert original.slam.loop_closure_count() > 0
-    paths = _keyvar_paths()
-    checkpoint = codec.encode_vars({p: _get(original, p) for p in paths})
     restored = SimpleNamespace(slam=GraphSlam(cfg))
-    for path, value in codec.decode_vars(checkpoint).items():
+    for path, value in codec.decode_vars(original.checkpoint).items():
         _set(restored, path, value)
-    tail = events[cut:]
-    after_original = _summary(feed(original.slam, tail))
+    tail = original.tail
+    after_original = original.after
     after_restored = _summary(feed(restored.slam, tail))
     assert after_restored == after_original
-    assert np.array_equal(restored.slam.grid.hits, original.slam.grid.hits)
-    assert len(restored.slam.edges) == len(original.slam.edges)
-    for a, b in zip(restored.slam.edges, original.slam.edges, strict=True):
-        assert (a.source, a.target, a.kind) == (b.source, b.target, b.kind)
-        assert np.array_equal(a.measurement, b.measurement)
+    assert np.array_equal(restored.slam.grid.hits, original.hits)
+    assert len(restored.slam.edges) == len(original.edges)
+    for a, (source, target, kind, measurement) in zip(restored.slam.edges, original.edges,
+                                                       strict=True):
+        assert (a.source, a.target, a.kind) == (source, target, kind)
+        assert np.array_equal(a.measurement, measurement)
     # without the checkpoint a fresh node ends up elsewhere
     fresh = GraphSlam(cfg)
     assert _summary(feed(fresh, tail)) != after_original

@@ -321,8 +321,7 @@ class Applier:
                     'times in one event: the rest are not logged, and a replay of that event '
                     'reads them from the event\'s time')
 
-    def clock_fallbacks(self) -> int:
+    def count_clock_fallbacks(self) -> None:
         """Replayed clock readings that had no recorded value, into ``stats`` (at release)."""
         if self.clock is not None:
             self.stats['clock_fallbacks'] = self.clock.fallbacks
-        return self.stats['clock_fallbacks']

@@ -205,6 +205,8 @@ class NodeRuntime:
         )
         # Publishers muted, timers and services held until release (gating.py).
         self.gate = OutputGate(self.applier, gated=env.gated, error=error)
+        # A checkpoint keeps the timers too; they are the gate's, made after the checkpointer
+        # (the applier writes to the checkpointer's segments, the gate runs events through it).
         self.checkpointer.timers = self.gate.timers.snapshot
         # Each input topic's phase, and where its messages are applied from (routing.py).
         self.router = Router(
@@ -513,7 +515,7 @@ class NodeRuntime:
             # On the I/O thread: the first snapshot's copies land in memory already written.
             self.checkpointer.io.submit(
                 functools.partial(self.checkpointer.prime_array_pool, self.node))
-        self.applier.clock_fallbacks()
+        self.applier.count_clock_fallbacks()
         self.reporter.status(ReleasedStatus(**self.applier.stats))
         executor = self.node.executor
         for tick in overdue:

@@ -134,8 +134,7 @@ def test_clock_readings_inside_a_live_message_are_logged_after_it(tmp_path: Path
     applier, node, inp, _ = _applier(tmp_path)
     node.read_clock = True
     applier.live_path(inp)(cdr(1), info(1))
-    segments = applier._segments
-    assert isinstance(segments, _Segments)
+    segments = node.segments
     assert [record[0] for record in segments.log] == [TOPIC, protocol.CLOCK_RECORD]
     ROSClock().now()  # outside the event: not logged
     assert len(segments.log) == 2
@@ -145,8 +144,7 @@ def test_without_a_log_nothing_is_written_and_clocks_are_left_alone(tmp_path: Pa
     applier, node, inp, _ = _applier(tmp_path, logs=False)
     node.read_clock = True
     applier.live_path(inp)(cdr(1), info(1))
-    segments = applier._segments
-    assert isinstance(segments, _Segments)
+    segments = node.segments
     assert segments.log == [] and applier.clock is None
     assert [n for n, _, _ in node.seen] == [1] and applier.stats['applied'] == 1
 
@@ -164,8 +162,7 @@ def test_the_live_path_does_what_apply_does(tmp_path: Path) -> None:
                 live(cdr(n), info(n))
             else:
                 applier.apply(inp, cdr(n), info(n), (n, n), log=True)
-        segments = applier._segments
-        assert isinstance(segments, _Segments)
+        segments = node.segments
         # (a clock record by its clock type: its times are the moment's)
         logged = [(r[0], r[3]) if r[0] == protocol.CLOCK_RECORD else r for r in segments.log]
         results.append((node.seen, logged, applier.windows[TOPIC].snapshot(), applier.stats,

@@ -17,7 +17,7 @@ message under the runtime's lock, written ahead to the log; the output gate (gat
 what the other logged events (ticks, requests, parameter changes) name, and the applier runs
 them again. A topic's subscription delivers to the router until the topic is LIVE; from then on
 it delivers straight to the applier (:meth:`Applier.live_path`), so a live message runs through
-one function of RORY's before the user's callback.
+one function of the runtime's, and the log writer's where the method logs.
 """
 
 from __future__ import annotations

@@ -149,6 +149,9 @@ def test_a_real_tree_read_from_proc() -> None:
         unknown = read_once(os.getpid(), 1, node_pids=set())
         assert {m.pid: m.role for m in unknown.members}[sleeper.pid] == 'other'
         started = {sleeper.pid: int(_stat(sleeper.pid)[19])}
+        while _stat(sleeper.pid)[0] != 'S':  # under load it may still be starting ('R')
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
         assert still_there(started) == {sleeper.pid: 'S'}
         sleeper.kill()
         sleeper.wait()

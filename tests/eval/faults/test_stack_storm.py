@@ -224,3 +224,19 @@ def test_the_storms_stops_are_read_from_the_simulators_log(tmp_path: Path) -> No
                    '[INFO] [3.0] [mujoco_sim]: e-stop released at t=13.50\n'  # no stop to end
                    '[INFO] [4.0] [mujoco_sim]: e-stop ENGAGED at t=30.5\n')
     assert stack_storm.stops_of(log) == [(12.04, 13.16), (30.5, None)]
+
+
+def test_the_model_on_the_geometry_is_shown_beside_the_judges(tmp_path: Path) -> None:
+    import numpy as np
+
+    # real_room: the floor is z = 0; a point 1 m above the floor in its open middle is on no
+    # surface.
+    model = tmp_path / 'final_model.npy'
+    np.save(model, np.array([[1.0, 1.0, 0.0], [1.2, 1.0, 0.01], [1.5, 1.5, 0.02],
+                             [1.5, 1.5, 1.0]]))
+    assert stack_storm.model_on_geometry(model, 'real_room') == pytest.approx(0.75)
+    assert stack_storm.model_on_geometry(tmp_path / 'none.npy', 'real_room') is None
+    storm = analyse([], [], [], {})
+    storm.model_on_geometry = {'storm': 0.9918, 'reference': 0.9924}
+    assert ('depth_mapper model 99.18% of points within 5 cm of the geometry, reference '
+            '99.24%') in describe(storm)

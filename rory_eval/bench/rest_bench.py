@@ -410,7 +410,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'[{i + 1}/{args.runs}] fixed {result["fixed"]["cpu_percent"]:.2f} % of a core, '
               f'{result["fixed"]["pss_mb"]:.1f} MB PSS ('
               + ', '.join(f'{r} {roles[r]["cpu_percent"]:.2f} % {roles[r]["pss_mb"]:.1f} MB'
-                          for r in FIXED)
+                          for r in FIXED if r in roles)  # (no spare: none ran)
               + f'); {args.nodes} nodes {roles["node"]["cpu_percent"]:.2f} %, '
               f'{roles["node"]["pss_mb"]:.1f} MB', flush=True)
         if result['other_users']:

@@ -269,13 +269,11 @@ class ForkLauncher:
         """The pool this command starts from holds its standbys and spares, all alive: what
         :meth:`prepare` would find (without its environment and init signature to compute)."""
         with self._lock:
-            for pool in self._pools.values():
-                if _key(argv, cwd) in pool.wanted_by:
-                    held = (*pool.waiting, *pool.spares)
-                    return (len(pool.waiting) >= self.pool_size
-                            and len(pool.spares) >= self._spares_wanted(pool)
-                            and all(s.child.poll() is None for s in held))
-        return False
+            pool = self._pool_of(argv, cwd)
+            return pool is not None and (
+                len(pool.waiting) >= self.pool_size
+                and len(pool.spares) >= self._spares_wanted(pool)
+                and all(s.child.poll() is None for s in (*pool.waiting, *pool.spares)))
 
     def _fork_standby(self, signature: Hashable, argv: Sequence[str], env: Mapping[str, str],
                       cwd: Path, *, spare: bool = False) -> Standby:
@@ -316,29 +314,28 @@ class ForkLauncher:
 
         threading.Thread(target=watch, name='rory-standby', daemon=True).start()
 
+    def _pool_of(self, argv: Sequence[str], cwd: Path) -> StandbyPool | None:
+        """The pool this command starts from (the caller holds the lock)."""
+        key = _key(argv, cwd)
+        return next((pool for pool in self._pools.values() if key in pool.wanted_by), None)
+
     def standby(self, argv: Sequence[str], cwd: Path) -> Standby | None:
         """The standby this command would start from next, if one waits."""
         with self._lock:
-            for pool in self._pools.values():
-                if _key(argv, cwd) in pool.wanted_by:
-                    return pool.best()
-        return None
+            pool = self._pool_of(argv, cwd)
+            return None if pool is None else pool.best()
 
     def standbys(self, argv: Sequence[str], cwd: Path) -> list[Standby]:
         """Every standby this command could start from."""
         with self._lock:
-            for pool in self._pools.values():
-                if _key(argv, cwd) in pool.wanted_by:
-                    return list(pool.waiting)
-        return []
+            pool = self._pool_of(argv, cwd)
+            return [] if pool is None else list(pool.waiting)
 
     def spares(self, argv: Sequence[str], cwd: Path) -> list[Standby]:
         """Every spare fork this command could start from."""
         with self._lock:
-            for pool in self._pools.values():
-                if _key(argv, cwd) in pool.wanted_by:
-                    return list(pool.spares)
-        return []
+            pool = self._pool_of(argv, cwd)
+            return [] if pool is None else list(pool.spares)
 
     def _take(self, signature: Hashable) -> Standby | None:
         """A standby of the pool, else one of its spare forks, taken out of it."""

@@ -11,9 +11,11 @@ serves every node with the same ``rclpy.init`` (:func:`~.zygote.init_signature`)
 nodes under one supervisor usually share one pool, and one bad message that takes down
 several of them at once finds a standby for each, up to the pool's size. ``spawn()``
 activates one when it fits; when none is left (more nodes struck together than the pool
-holds, or they died) the node is forked cold from the zygote, and says why. The pool is
-filled again :data:`REFILL_DELAY` after it was taken from. Any other command is started with
-``exec``, cold.
+holds, or they died) the node starts from one of the pool's *spare forks*, made ahead without
+``rclpy.init`` (one for each node beyond the pool's size; ``spare_forks: false`` turns them
+off: docs/performance.md, "Spare forks"), and else is forked cold from the zygote; a node
+that starts cold says why. The pool is filled again :data:`REFILL_DELAY` after it was taken
+from. Any other command is started with ``exec``, cold.
 """
 
 from __future__ import annotations

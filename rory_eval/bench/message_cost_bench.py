@@ -13,7 +13,10 @@ warm standby). The node
 process's own CPU time over the publishing window, divided by the messages it took, is its
 cost per message; the difference to bare is RORY's. At a rate this high the per-message cost
 outweighs the fixed ones (the heartbeat's 5 wake-ups a second, a checkpoint every 2 s).
-Configurations alternate, the order swapped from run to run. Prints a Markdown table.
+Configurations alternate, the order swapped from run to run. Prints a Markdown table, then
+the same cost split by the node's threads (``schedstat``'s nanoseconds per thread: ``main`` is
+the executor's thread, ``dds.udp`` Fast DDS's receive threads, ``rory-io`` the log's and
+checkpoints' I/O), which says where the extra is spent.
 
 With ``--input tick`` the node is ``examples/tick_sink`` instead: a 500 Hz timer whose callback
 reads the node's clock once (as a node computing ``dt`` does) and counts, with no publisher;
@@ -38,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from rory_eval.bench.light_node_bench import alternating, plain_env
+from rory_eval.bench.rest_bench import Threads, per_kind, thread_ns
 from rory_eval.harness.process_usage import read_process
 from rory_eval.harness.scenario import Program, prepare, stop_process
 from rory_eval.harness.simrun import exit_on_sigterm
@@ -113,11 +117,11 @@ def run_ticks(config: str, workdir: Path, domain: int, seconds: float) -> dict[s
         try:
             node = _node_pid(root.pid, config, time.monotonic() + 60, program)
             time.sleep(3.0)  # started, released, past its first checkpoint
-            before = read_process(node)
+            before, threads_before = read_process(node), thread_ns(node)
             started = time.monotonic()
             time.sleep(seconds)
             wall = time.monotonic() - started
-            after = read_process(node)
+            after, threads_after = read_process(node), thread_ns(node)
             if before is None or after is None:
                 raise RuntimeError(f'{config}: the node ended')
         finally:
@@ -125,7 +129,19 @@ def run_ticks(config: str, workdir: Path, domain: int, seconds: float) -> dict[s
     cpu = (after.own_ticks - before.own_ticks) / _TICK
     ticks = TICK_RATE * wall
     return {'config': config, 'messages': ticks, 'cpu_s': cpu, 'wall_s': wall,
-            'us_per_message': 1e6 * cpu / ticks}
+            'us_per_message': 1e6 * cpu / ticks,
+            'threads_us': thread_us(threads_before, threads_after, node, ticks)}
+
+
+def thread_us(before: Threads, after: Threads, node: int, messages: float) -> dict[str, float]:
+    """Microseconds of CPU per message for each kind of thread of process ``node`` between two
+    ``thread_ns`` readings; its main thread (the executor's, here) is ``main``."""
+    def relabel(threads: Threads) -> Threads:
+        return {tid: ('main' if tid == node else kind, ns, runs)
+                for tid, (kind, ns, runs) in threads.items()}
+
+    grown = per_kind(relabel(before), relabel(after))
+    return {kind: round(ns / 1e3 / messages, 2) for kind, ns in sorted(grown.items())}
 
 
 def _node_env(config: str, domain: int) -> dict[str, str]:
@@ -164,12 +180,12 @@ def run_once(config: str, workdir: Path, domain: int, rate: float,
             assert publisher.stdout is not None
             if publisher.stdout.readline().strip() != 'start':
                 raise RuntimeError(f'{config}: the publisher never started')
-            before = read_process(node)
+            before, threads_before = read_process(node), thread_ns(node)
             started = time.monotonic()
             if publisher.stdout.readline().strip() != 'end':
                 raise RuntimeError(f'{config}: the publisher did not finish')
             wall = time.monotonic() - started
-            after = read_process(node)
+            after, threads_after = read_process(node), thread_ns(node)
             if before is None or after is None:
                 raise RuntimeError(f'{config}: the node ended')
         finally:
@@ -177,7 +193,24 @@ def run_once(config: str, workdir: Path, domain: int, rate: float,
             stop_process(root)
     cpu = (after.own_ticks - before.own_ticks) / _TICK
     return {'config': config, 'messages': count, 'cpu_s': cpu, 'wall_s': wall,
-            'us_per_message': 1e6 * cpu / count}
+            'us_per_message': 1e6 * cpu / count,
+            'threads_us': thread_us(threads_before, threads_after, node, count)}
+
+
+def thread_table(runs: Sequence[dict[str, Any]], unit: str) -> str:
+    """Per thread kind and configuration, the median microseconds per ``unit`` (Markdown);
+    kinds that take under 0.5 us in every configuration are left out."""
+    configs = [c for c in CONFIGS if any(r['config'] == c for r in runs)]
+    kinds = sorted({k for r in runs for k in r['threads_us']})
+    medians = {c: {k: statistics.median(r['threads_us'].get(k, 0.0)
+                                        for r in runs if r['config'] == c)
+                   for k in kinds} for c in configs}
+    shown = [k for k in kinds if any(medians[c][k] >= 0.5 for c in configs)]
+    lines = [f'| thread | {" | ".join(configs)} |', '|---|' + '---:|' * len(configs)]
+    for kind in sorted(shown, key=lambda k: -max(medians[c][k] for c in configs)):
+        lines.append(f'| {kind} | ' + ' | '.join(f'{medians[c][kind]:.1f}' for c in configs)
+                     + ' |')
+    return f'Node CPU per {unit} by thread (us, medians; schedstat):\n\n' + '\n'.join(lines)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -191,15 +224,20 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help='what the node takes: LaserScans, or ticks of its own timer')
     parser.add_argument('--rate', type=float, default=1000.0, help='scans per second')
     parser.add_argument('--seconds', type=float, default=10.0)
+    parser.add_argument('--configs', default=','.join(CONFIGS),
+                        help=f'which of {",".join(CONFIGS)} to run (comma-separated)')
     parser.add_argument('--domain', type=int, default=86)
     parser.add_argument('--out', help='keep the runs and message_cost.json here')
     args = parser.parse_args(argv)
     if args.runs < 1 or args.rate <= 0 or args.seconds <= 0:
         parser.error('--runs must be at least 1, --rate and --seconds positive')
+    configs = [c for c in CONFIGS if c in args.configs.split(',')]
+    if not configs or any(c not in CONFIGS for c in args.configs.split(',')):
+        parser.error(f'--configs: a comma-separated choice of {",".join(CONFIGS)}')
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix='rory-msgcost-'))
     runs: list[dict[str, Any]] = []
     unit = 'tick' if args.input == 'tick' else 'message'
-    for i, config in alternating(CONFIGS, args.runs):
+    for i, config in alternating(configs, args.runs):
         workdir = root / f'run{i}-{config}'
         result = (run_ticks(config, workdir, args.domain, args.seconds) if args.input == 'tick'
                   else run_once(config, workdir, args.domain, args.rate, args.seconds))
@@ -207,16 +245,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'[{i + 1}/{args.runs}] {config}: {result["us_per_message"]:.1f} us a {unit}',
               flush=True)
     medians = {c: statistics.median(r['us_per_message'] for r in runs if r['config'] == c)
-               for c in CONFIGS}
+               for c in configs}
     (root / 'message_cost.json').write_text(json.dumps({'runs': runs, 'medians': medians},
                                                        indent=1))
     print()
     what = 'timer tick (one clock reading)' if args.input == 'tick' else 'LaserScan'
-    print(f'| configuration | node CPU per {what} (us) | added to bare (us) |')
+    print(f'| configuration | node CPU per {what} (us) | added to {configs[0]} (us) |')
     print('|---|---:|---:|')
-    for config in CONFIGS:
-        added = '-' if config == 'bare' else f'{medians[config] - medians["bare"]:+.1f}'
+    base = configs[0]  # bare, unless left out
+    for config in configs:
+        added = '-' if config == base else f'{medians[config] - medians[base]:+.1f}'
         print(f'| {config} | {medians[config]:.1f} | {added} |')
+    print()
+    print(thread_table(runs, unit))
     rate = TICK_RATE if args.input == 'tick' else args.rate
     print(f'\n{rate:g} Hz for {args.seconds:g} s, medians of {args.runs} runs.')
     if not args.out:

@@ -145,7 +145,7 @@ def thread_ns(pid: int, *, proc: Path = Path('/proc')) -> Threads:
     return threads
 
 
-def _per_kind(before: Threads, after: Threads, *, runs: bool) -> dict[str, int]:
+def per_kind(before: Threads, after: Threads, *, runs: bool = False) -> dict[str, int]:
     """Nanoseconds (or runs) per thread kind from before to after."""
     total: dict[str, int] = {}
     for tid, (kind, ns, count) in after.items():
@@ -159,14 +159,14 @@ def thread_shares(before: Threads, after: Threads, seconds: float) -> dict[str, 
     """Percent of one core per thread kind between two ``thread_ns`` readings ``seconds``
     apart, largest first; a thread born in between counts from 0, one that ended is left out."""
     shares = {kind: round(100.0 * n / 1e9 / max(seconds, 1e-9), 3)
-              for kind, n in _per_kind(before, after, runs=False).items()}
+              for kind, n in per_kind(before, after, runs=False).items()}
     return dict(sorted(shares.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
 def thread_wakeups(before: Threads, after: Threads, seconds: float) -> dict[str, float]:
     """Times per second each thread kind was put on a CPU between the two readings."""
     return {kind: round(n / max(seconds, 1e-9), 1)
-            for kind, n in _per_kind(before, after, runs=True).items()}
+            for kind, n in per_kind(before, after, runs=True).items()}
 
 
 SHARED = ('/libpython', '/libfastrtps.so')

@@ -215,5 +215,5 @@ def test_a_live_message_runs_through_one_function_of_the_runtime_and_the_log_wri
         sys.setprofile(None)
     if segments.writer is not None:
         segments.writer.close()
-    writer = {'log.write', 'log.write_identified', 'log.write_message'} if logs else set()
+    writer = {'log.write', 'log.write_message'} if logs else set()
     assert touched == {'applier.live'} | writer

@@ -213,23 +213,37 @@ def test_existing_segment_is_not_overwritten(tmp_path: Path) -> None:
         SegmentWriter(tmp_path / 'seg')
 
 
-def test_failed_write_makes_the_segment_refuse_more(tmp_path: Path) -> None:
+def test_a_short_writev_is_completed_so_no_record_is_torn(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real_writev = os.writev
+
+    def short(fd: int, buffers: list[bytes]) -> int:
+        head = bytes(buffers[0])
+        return os.write(fd, head[:5])  # as a signal can cut a write to a regular file
+
+    writer = write_segment(tmp_path / 'seg', sample_entries(1), close=False)
+    monkeypatch.setattr(os, 'writev', short)
+    for entry in sample_entries(3)[1:]:
+        writer.write(entry.topic, entry.msgtype, entry.recv_ns, entry.source_ns, entry.seq,
+                     entry.data)
+    monkeypatch.setattr(os, 'writev', real_writev)
+    writer.close()
+    assert read_all(tmp_path / 'seg') == sample_entries(3)
+    with Reader(tmp_path / 'seg') as reader:  # the summary's offsets found the records
+        assert reader.message_count == 3
+        assert sum(1 for _ in reader.messages()) == 3
+
+
+def test_failed_write_makes_the_segment_refuse_more(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     writer = write_segment(tmp_path / 'seg', sample_entries(2), close=False)
-    storage = writer._bag.storage  # simulating a full disk needs the file object
-    assert storage is not None
-    real = storage.bio  # type: ignore[attr-defined]
 
-    class FullDisk:
-        def write(self, data: bytes) -> int:
-            raise OSError(28, 'No space left on device')
+    def full_disk(fd: int, buffers: object) -> int:
+        raise OSError(28, 'No space left on device')
 
-        def flush(self) -> None:
-            pass
-
-        def close(self) -> None:
-            real.close()
-
-    storage.bio = FullDisk()  # type: ignore[attr-defined]
+    monkeypatch.setattr(os, 'writev', full_disk)  # a message record is one writev
     with pytest.raises(LogError, match=r"topic '/count': cannot write: .*No space left"):
         writer.write('/count', INT64, 1, 2, 3, int64(4))
     with pytest.raises(LogError, match='unusable after an earlier failure'):

@@ -20,12 +20,13 @@ from rclpy.qos import QoSProfile
 from runtime_fakes import FakeSubscription, cdr, info
 from std_msgs.msg import Int64
 
-from rory_runtime import event_clock, protocol
-from rory_runtime.applier import STAT_NAMES, Applier, Window
+from rory_runtime import protocol
 from rory_runtime.inflight import InFlightSlot, read_slot, slot_path
 from rory_runtime.log import SegmentStore, SegmentWriter
+from rory_runtime.node import event_clock
+from rory_runtime.node.applier import STAT_NAMES, Applier, Window
+from rory_runtime.node.routing import Input, TopicPhase
 from rory_runtime.protocol import InputSpec, MessageId
-from rory_runtime.routing import Input, TopicPhase
 
 TOPIC = '/numbers'
 

@@ -21,9 +21,9 @@ from rclpy.clock_type import ClockType
 from rclpy.parameter import Parameter
 
 from rory_runtime import chunk_file, chunks, codec
+from rory_runtime.node.runtime import NodeRuntime, RuntimeEnv
+from rory_runtime.node.state import CheckpointSpec
 from rory_runtime.protocol import CheckpointFailure, ErrorStatus, Method, Mode, Status
-from rory_runtime.runtime import NodeRuntime, RuntimeEnv
-from rory_runtime.state import CheckpointSpec
 
 
 class _Node:

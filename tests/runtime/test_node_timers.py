@@ -16,7 +16,7 @@ from rclpy.node import Node
 from rclpy.time import Time
 from runtime_fakes import FakeTimer
 
-from rory_runtime.node_timers import NodeTimers
+from rory_runtime.node.timers import NodeTimers
 
 S = 1_000_000_000
 

@@ -11,7 +11,8 @@ from rclpy.context import Context
 from rclpy.node import Node
 from std_msgs.msg import Int64
 
-from rory_runtime import attach, patching, protocol, runtime, state
+from rory_runtime import protocol
+from rory_runtime.node import attach, patching, runtime, state
 from rory_runtime.protocol import Method, Mode
 
 

@@ -12,7 +12,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node as RclpyNode
 
-from rory_runtime.pulse import PARKED_PROBE_EVERY, CheckpointSchedule, Pulse, executor_parked
+from rory_runtime.node.pulse import PARKED_PROBE_EVERY, CheckpointSchedule, Pulse, executor_parked
 
 SECOND = 1_000_000_000
 

@@ -26,11 +26,14 @@ from rclpy.publisher import Publisher
 from rclpy.service import Service
 from rclpy.timer import Timer
 
-from . import event_clock, node_parameters, node_services, protocol
+from .. import protocol
+from ..errors import RoryError
+from . import event_clock
+from . import parameters as node_parameters
+from . import services as node_services
 from .applier import Applier
-from .errors import RoryError
 from .event_clock import Reading
-from .node_timers import NodeTimers
+from .timers import NodeTimers
 
 
 class OutputGate:

@@ -157,6 +157,18 @@ def test_what_a_node_process_loads_never_imports_the_supervisor() -> None:
                       {'rory_runtime': ('rory_runtime.supervisor.embed',)}) == []
 
 
+def test_the_node_side_and_the_supervisor_import_neither_the_other() -> None:
+    # The runtime's two sides (docs/architecture.md, "Module map"): what runs in a node's process
+    # (rory_runtime/node/) and the supervisor (rory_runtime/supervisor/) meet only on what both
+    # stand on, rory_runtime's top level. The zygote loads the node side for the nodes it forks
+    # by name (supervisor.py: preload), not by an import.
+    node = sources('rory_runtime/node')
+    supervisor = sources('rory_runtime/supervisor')
+    assert len(node) > 10 and len(supervisor) > 20
+    assert violations(supervisor, ('rory_runtime.node',)) == []
+    assert violations(node, ('rory_runtime.supervisor',)) == []
+
+
 SUPERVISOR_DECISIONS = ('states', 'watchdog', 'events', 'output', 'lineage', 'ports', 'recovery',
                         'poison', 'run_marker', 'config', 'process', 'managed_node', 'gate',
                         'loop_events', 'health', 'standby_keeper', 'incarnation', 'handover',

@@ -1,4 +1,4 @@
-"""The applier (applier.py): a message written ahead to the log, the in-flight slot busy while
+"""The applier (node/applier.py): a message written ahead to the log, the in-flight slot busy while
 its callback runs, duplicates and quarantined messages skipped, windows and counters moved, the
 event's clock readings recorded; the live path and the general one doing the same.
 

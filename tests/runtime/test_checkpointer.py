@@ -1,5 +1,5 @@
-"""The node's checkpoint tick (checkpointer.py): a snapshot on the executor, packed and written on
-the I/O thread, its large arrays copied into the buffers of the checkpoint before
+"""The node's checkpoint tick (node/checkpointer.py): a snapshot on the executor, packed and
+written on the I/O thread, its large arrays copied into the buffers of the checkpoint before
 (codec.ArrayPool).
 
 Driven directly on a NodeRuntime whose node is a plain object holding the key variables; the

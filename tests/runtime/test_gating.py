@@ -1,4 +1,4 @@
-"""The output gate (gating.py) and the events it runs through the applier: publishers muted
+"""The output gate (node/gating.py) and the events it runs through the applier: publishers muted
 until release; timers held until release, their ticks and clock readings logged before their
 callbacks run, and replayed with the readings they took.
 

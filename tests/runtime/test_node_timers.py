@@ -1,4 +1,4 @@
-"""The node's timers as state (node_timers.py): what its code did to them survives holding and
+"""The node's timers as state (node/timers.py): what its code did to them survives holding and
 replay, each goes back on its grid at release, a checkpoint keeps them and a restore makes
 again those made after start-up. Driven with stand-ins of rclpy's timers on a simulated clock.
 """

@@ -1,6 +1,6 @@
-"""How a node class gets its runtime (patching.py): nothing patched unsupervised; under the
+"""How a node class gets its runtime (node/patching.py): nothing patched unsupervised; under the
 supervisor the node's own entities go to its runtime and rclpy's own stay rclpy's. And the
-node side's front door (attach.py) still exports what code written against it imports."""
+node side's front door (node/attach.py) still exports what code written against it imports."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""The side thread's decisions (pulse.py): when it beats by itself, when it probes the executor,
-when a checkpoint is due; driven tick by tick with a fake executor and a fake clock."""
+"""The side thread's decisions (node/pulse.py): when it beats by itself, when it probes the
+executor, when a checkpoint is due; driven tick by tick with a fake executor and a fake clock."""
 
 from __future__ import annotations
 

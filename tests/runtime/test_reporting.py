@@ -1,4 +1,4 @@
-"""What the node tells its supervisor (reporting.py): each error once, as an ERROR status."""
+"""What the node tells its supervisor (node/reporting.py): each error once, as an ERROR status."""
 
 from __future__ import annotations
 

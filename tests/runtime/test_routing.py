@@ -1,4 +1,4 @@
-"""The node's input path (routing.py): what is applied, when, in which order, and never twice;
+"""The node's input path (node/routing.py): what is applied, when, in which order, and never twice;
 each topic's phase of the handover (BUFFERED -> LIVE, SHADOW -> HANDOVER -> LIVE).
 
 These drive the runtime's router directly with real CDR bytes; the subscription is a minimal

@@ -1,5 +1,5 @@
-"""Where a timer goes on after a recovery (timer_schedule.py): on its old grid, a tick that fell
-due while the node was down fired once, never a burst; with a fake clock."""
+"""Where a timer goes on after a recovery (node/timer_schedule.py): on its old grid, a tick that
+fell due while the node was down fired once, never a burst; with a fake clock."""
 
 from __future__ import annotations
 

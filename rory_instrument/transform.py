@@ -78,7 +78,7 @@ RUNTIME_MODULE = 'rory_runtime'
 CHECKPOINTED = f'{RUNTIME_MODULE}.checkpointed'
 CHECKPOINT_MODULE = f'{RUNTIME_MODULE}.checkpoint_module'
 # A checkpoint stores a module global under this prefix and its path; the same as
-# rory_runtime.state.GLOBAL_PREFIX, spelled out so that instrumenting needs no runtime.
+# rory_runtime.node.state.GLOBAL_PREFIX, spelled out so that instrumenting needs no runtime.
 CHECKPOINT_GLOBAL_PREFIX = 'global:'
 # The rules of an entry as the runtime takes them: (checkpoint key, max_age in seconds,
 # on_stale) each.

@@ -28,10 +28,10 @@ def checkpointed(
     replay: str | None = None,
     freshness: tuple[tuple[str, float, str], ...] = (),
 ) -> Callable[[C], C]:
-    """Mark a node class's key variables for checkpointing (see :mod:`rory_runtime.attach`)."""
+    """Mark a node class's key variables for checkpointing (see :mod:`rory_runtime.node.attach`)."""
     if not os.environ.get(ENV_NODE):
         return lambda cls: cls
-    from .attach import checkpointed as attach_checkpointed
+    from .node.attach import checkpointed as attach_checkpointed
 
     return attach_checkpointed(
         vars=vars,
@@ -52,10 +52,10 @@ def checkpoint_module(
     replay: str | None = None,
     freshness: tuple[tuple[str, float, str], ...] = (),
 ) -> None:
-    """Mark a function-style node's module globals as its state (see :mod:`.attach`)."""
+    """Mark a function-style node's module globals as its state (see :mod:`.node.attach`)."""
     if not os.environ.get(ENV_NODE):
         return
-    from .attach import checkpoint_module as attach_checkpoint_module
+    from .node.attach import checkpoint_module as attach_checkpoint_module
 
     attach_checkpoint_module(
         module,

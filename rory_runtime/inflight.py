@@ -6,7 +6,7 @@ memory store, no system call, and it survives the process being killed (the page
 the file). After a crash the supervisor reads the slot: the message the node died applying is a
 suspect; dying on the same message twice makes it a poison message (see supervisor/poison.py).
 
-The same page carries the node's heartbeat: the runtime's side thread (pulse.py) writes
+The same page carries the node's heartbeat: the runtime's side thread (node/pulse.py) writes
 ``CLOCK_MONOTONIC`` (system-wide, so the supervisor can compare) a few times a second while the
 node's executor shows it runs. A node whose executor is stuck - in a callback that never
 returns, a deadlock, a busy loop - stops beating, and the supervisor treats it as crashed.
@@ -64,7 +64,7 @@ _HEAD_AT = slice(0, _HEAD.size)
 
 class SlotWrites(NamedTuple):
     """What :meth:`InFlightSlot.busy` and :meth:`InFlightSlot.idle` write for one topic's
-    messages, for a caller that writes it itself: the applier's hot path (applier.py), where
+    messages, for a caller that writes it itself: the applier's hot path (node/applier.py), where
     two method calls fewer per message are worth it. The layout stays this module's.
 
     Busy: ``map[name_at] = name; map[head_at] = head(seq, source_ns, recv_ns)``; idle:
@@ -119,7 +119,7 @@ class InFlightSlot:
         self._map[:8] = _IDLE
 
     def beat(self) -> None:
-        """The executor is alive (pulse.py decides when)."""
+        """The executor is alive (node/pulse.py decides when)."""
         _BEAT.pack_into(self._map, _BEAT_AT, time.monotonic_ns())
 
     def close(self) -> None:

@@ -28,9 +28,10 @@ from typing import Any, TextIO
 import msgpack
 import numpy as np
 
-from . import codec, node_parameters
+from . import codec
 from .errors import CheckpointError, CodecError, LogError
 from .log import SegmentStore, read_segment
+from .node import parameters as node_parameters
 from .protocol import NODE_ID_RE
 from .store import Checkpoint, CheckpointStore
 

@@ -193,7 +193,7 @@ class _Deferred(Exception):
 
 def warm_imports(program: Program) -> list[str]:
     """Import what the program will import from outside itself; the names that failed."""
-    from rory_runtime import attach
+    from rory_runtime.node import attach
 
     def refuse(*_args: Any, **_kwargs: Any) -> Any:
         raise _Deferred

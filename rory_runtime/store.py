@@ -90,9 +90,9 @@ class Checkpoint:
             oldest first.
         vars_blob: ``codec.encode_vars`` output, opaque here.
         parameters: The node's parameters, a serialized ``rcl_interfaces/msg/ParameterEvent``
-            (``node_parameters.py``); empty in checkpoints from before they were kept.
+            (``node/parameters.py``); empty in checkpoints from before they were kept.
         lifecycle: A lifecycle node's primary state (``'active'``, ...); empty for other nodes.
-        timers: The node's timers (``node_timers.py``: period, clock, cancelled, grid, the
+        timers: The node's timers (``node/timers.py``: period, clock, cancelled, grid, the
             method a timer made after start-up calls); empty in checkpoints from before.
         clock_ns: The node's ROS clock when taken (``freshness.py`` counts ages on it); 0 in
             checkpoints from before it was kept.

@@ -147,12 +147,26 @@ NODE_SIDE_EXCEPT = {'cli', 'bundle', 'kill', 'inspection'}
 
 
 def test_what_a_node_process_loads_never_imports_the_supervisor() -> None:
+    # The node side (rory_runtime/node/) and what it stands on (rory_runtime's top level).
     node_side = [p for p in (ROOT / 'rory_runtime').glob('*.py')
                  if p.stem not in NODE_SIDE_EXCEPT]
+    node_side += sorted((ROOT / 'rory_runtime' / 'node').glob('*.py'))
     assert len(node_side) > 15
     # rory_runtime.supervise() runs a supervisor from a program: loaded when it is called.
     assert violations(node_side, ('rory_runtime.supervisor',),
                       {'rory_runtime': ('rory_runtime.supervisor.embed',)}) == []
+
+
+def test_the_node_side_and_the_supervisor_import_neither_the_other() -> None:
+    # The runtime's two sides (docs/architecture.md, "Module map"): what runs in a node's process
+    # (rory_runtime/node/) and the supervisor (rory_runtime/supervisor/) meet only on what both
+    # stand on, rory_runtime's top level. The zygote loads the node side for the nodes it forks
+    # by name (supervisor.py: preload), not by an import.
+    node = sources('rory_runtime/node')
+    supervisor = sources('rory_runtime/supervisor')
+    assert len(node) > 10 and len(supervisor) > 20
+    assert violations(supervisor, ('rory_runtime.node',)) == []
+    assert violations(node, ('rory_runtime.supervisor',)) == []
 
 
 SUPERVISOR_DECISIONS = ('states', 'watchdog', 'events', 'output', 'lineage', 'ports', 'recovery',

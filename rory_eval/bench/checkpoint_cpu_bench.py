@@ -44,11 +44,11 @@ from rclpy.clock_type import ClockType
 from rclpy.parameter import Parameter
 
 from rory_runtime import chunk_file, chunks, codec
-from rory_runtime.checkpointer import Checkpointer
 from rory_runtime.fsutil import fsync_dir, make_private_dir
 from rory_runtime.log import SegmentStore
+from rory_runtime.node.checkpointer import Checkpointer
+from rory_runtime.node.state import CheckpointSpec, read_state
 from rory_runtime.protocol import Method
-from rory_runtime.state import CheckpointSpec, read_state
 from rory_runtime.store import Checkpoint, CheckpointStore, serialize
 
 CELLS = (1024, 512, 256)  # grid_slam's levels: map_size 1024, three levels

@@ -49,7 +49,7 @@ def _imports(role: str, target: str) -> list[str]:
     """Modules a role imports before ``rclpy.init`` (warm_imports for the target's)."""
     if role == 'supervisor':
         return ['rory_runtime.supervisor.supervisor', 'rory_runtime.supervisor.ring']
-    own = ['rory_runtime.attach', 'rory_runtime.log'] if role != 'bare' else []
+    own = ['rory_runtime.node.attach', 'rory_runtime.log'] if role != 'bare' else []
     return [f'@{target}', *own]
 
 

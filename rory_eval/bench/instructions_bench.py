@@ -74,7 +74,7 @@ import scan_sink
 count = int(sys.argv[1])
 cls = scan_sink.ScanSink
 if os.environ.get('RORY_NODE'):
-    from rory_runtime import patching
+    from rory_runtime.node import patching
     cls = patching.checkpointed(vars=('count', 'last_stamp'), manifest='sha256:0')(cls)
 rclpy.init()
 node = cls()

@@ -1,7 +1,7 @@
 """``make faults``, idle: a node idle for minutes is never taken for hung (issue 36).
 
 The heartbeat no longer comes from a timer in the node's executor: the ``rory-pulse`` thread
-(rory_runtime/pulse.py) writes the beat itself while RORY's callbacks complete, and while none
+(rory_runtime/node/pulse.py) writes the beat itself while RORY's callbacks complete, and while none
 does it posts a probe with ``Executor.create_task`` that beats when the executor runs it. A node
 without inputs lives on those probes. This runs the example integrator under ``rory supervise``
 (method rory) through the integrator harness, its numbers ``--minutes`` apart from each other

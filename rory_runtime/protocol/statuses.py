@@ -316,7 +316,7 @@ class ReleasedStatus:
     passed_by_relay: int  # reached only the live reader after later ones came by relay
     ticks: int  # timer callbacks run live
     ticks_replayed: int
-    clock_fallbacks: int  # clock readings replay had no recorded value for (event_clock.py)
+    clock_fallbacks: int  # clock readings replay had no recorded value for (node/event_clock.py)
     parameter_changes: int  # from outside, logged
     parameter_changes_replayed: int
     requests: int  # service requests, logged

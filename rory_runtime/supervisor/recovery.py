@@ -15,7 +15,7 @@
 * **S4 release** - :meth:`Recovery.s4_release`: the node has unmuted its outputs and started its
   timers; the safe state is released. Afterwards the supervisor keeps relaying what its ring
   receives until the node reports, topic by topic, that its live subscription carries the same
-  messages (the handover, see ``routing.py``).
+  messages (the handover, see ``node/routing.py``).
 
 :class:`Recovery` runs these steps for the supervisor's ``ManagedNode``, which decides when (a
 crash, a HELLO, a SYNCED, a RELEASED) and never takes a step itself: S1 and S2 start in

@@ -251,7 +251,7 @@ class Supervisor:
         if not programs:
             return
         try:
-            zygote = Zygote.start(programs, preload=('rory_runtime.attach',))
+            zygote = Zygote.start(programs, preload=('rory_runtime.node.attach',))
         except (OSError, RoryError) as err:
             _logger.warning('%s no fork server (%s); every node starts with exec, cold',
                             LOG_PREFIX, err)

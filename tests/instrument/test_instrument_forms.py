@@ -789,7 +789,7 @@ def test_freshness_rules_do_not_change_the_digest() -> None:
 
 
 def test_checkpoint_key_prefix_is_the_runtimes() -> None:
-    from rory_runtime.state import GLOBAL_PREFIX
+    from rory_runtime.node.state import GLOBAL_PREFIX
 
     assert CHECKPOINT_GLOBAL_PREFIX == GLOBAL_PREFIX
 

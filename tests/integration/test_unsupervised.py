@@ -66,7 +66,7 @@ def test_unsupervised_decorator_returns_the_class_without_loading_the_runtime() 
         'assert D is C\n'
         'rory_runtime.checkpoint_module(__name__, vars=("y",), checkpoint_interval=1.0,'
         ' replay="fast", manifest="sha256:0")\n'
-        'assert "rory_runtime.attach" not in sys.modules, "runtime loaded unsupervised"\n'
+        'assert "rory_runtime.node.attach" not in sys.modules, "runtime loaded unsupervised"\n'
     )
     env = {k: v for k, v in os.environ.items() if not k.startswith('RORY_')}
     subprocess.run([sys.executable, '-c', code], env=env, check=True)

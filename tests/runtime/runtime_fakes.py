@@ -16,9 +16,9 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import Int64
 
 from rory_runtime import protocol
+from rory_runtime.node.runtime import NodeRuntime, RuntimeEnv
+from rory_runtime.node.state import CheckpointSpec
 from rory_runtime.protocol import FLAG_RELAY, Method, Mode
-from rory_runtime.runtime import NodeRuntime, RuntimeEnv
-from rory_runtime.state import CheckpointSpec
 
 
 @dataclass

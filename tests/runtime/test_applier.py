@@ -1,4 +1,4 @@
-"""The applier (applier.py): a message written ahead to the log, the in-flight slot busy while
+"""The applier (node/applier.py): a message written ahead to the log, the in-flight slot busy while
 its callback runs, duplicates and quarantined messages skipped, windows and counters moved, the
 event's clock readings recorded; the live path and the general one doing the same.
 
@@ -20,12 +20,13 @@ from rclpy.qos import QoSProfile
 from runtime_fakes import FakeSubscription, cdr, info
 from std_msgs.msg import Int64
 
-from rory_runtime import event_clock, protocol
-from rory_runtime.applier import STAT_NAMES, Applier, Window
+from rory_runtime import protocol
 from rory_runtime.inflight import InFlightSlot, read_slot, slot_path
 from rory_runtime.log import SegmentStore, SegmentWriter
+from rory_runtime.node import event_clock
+from rory_runtime.node.applier import STAT_NAMES, Applier, Window
+from rory_runtime.node.routing import Input, TopicPhase
 from rory_runtime.protocol import InputSpec, MessageId
-from rory_runtime.routing import Input, TopicPhase
 
 TOPIC = '/numbers'
 

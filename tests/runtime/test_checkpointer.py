@@ -1,5 +1,5 @@
-"""The node's checkpoint tick (checkpointer.py): a snapshot on the executor, packed and written on
-the I/O thread, its large arrays copied into the buffers of the checkpoint before
+"""The node's checkpoint tick (node/checkpointer.py): a snapshot on the executor, packed and
+written on the I/O thread, its large arrays copied into the buffers of the checkpoint before
 (codec.ArrayPool).
 
 Driven directly on a NodeRuntime whose node is a plain object holding the key variables; the
@@ -21,9 +21,9 @@ from rclpy.clock_type import ClockType
 from rclpy.parameter import Parameter
 
 from rory_runtime import chunk_file, chunks, codec
+from rory_runtime.node.runtime import NodeRuntime, RuntimeEnv
+from rory_runtime.node.state import CheckpointSpec
 from rory_runtime.protocol import CheckpointFailure, ErrorStatus, Method, Mode, Status
-from rory_runtime.runtime import NodeRuntime, RuntimeEnv
-from rory_runtime.state import CheckpointSpec
 
 
 class _Node:

@@ -11,8 +11,8 @@ from rclpy.clock import Clock, ROSClock
 from rclpy.clock_type import ClockType
 from rclpy.time import Time
 
-from rory_runtime import event_clock
-from rory_runtime.event_clock import MAX_READINGS_PER_EVENT, EventClock, Reading
+from rory_runtime.node import event_clock
+from rory_runtime.node.event_clock import MAX_READINGS_PER_EVENT, EventClock, Reading
 
 
 class _Recorder:

@@ -1,4 +1,4 @@
-"""The output gate (gating.py) and the events it runs through the applier: publishers muted
+"""The output gate (node/gating.py) and the events it runs through the applier: publishers muted
 until release; timers held until release, their ticks and clock readings logged before their
 callbacks run, and replayed with the readings they took.
 
@@ -26,12 +26,12 @@ from runtime_fakes import (
 from std_msgs.msg import Int64
 
 from rory_runtime import protocol
-from rory_runtime.applier import Applier
-from rory_runtime.gating import OutputGate
 from rory_runtime.inflight import InFlightSlot, slot_path
 from rory_runtime.log import LogEntry, read_segment
+from rory_runtime.node.applier import Applier
+from rory_runtime.node.gating import OutputGate
+from rory_runtime.node.runtime import NodeRuntime
 from rory_runtime.protocol import Method, Mode
-from rory_runtime.runtime import NodeRuntime
 from rory_runtime.supervisor.recovery import readings_first
 
 

@@ -15,10 +15,10 @@ from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Int64
 
-from rory_runtime import node_parameters
 from rory_runtime.codec import encode_vars
 from rory_runtime.inspection import main
 from rory_runtime.log import SegmentStore
+from rory_runtime.node import parameters as node_parameters
 from rory_runtime.store import Checkpoint, CheckpointStore
 
 NODE = 'mapper'

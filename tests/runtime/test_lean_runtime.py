@@ -23,7 +23,7 @@ def _python(code: str) -> subprocess.CompletedProcess[str]:
 
 def test_the_runtime_and_the_instrumenter_import_nothing_of_the_extras() -> None:
     done = _python('''
-import rory_instrument.cli, rory_runtime.cli, rory_runtime.attach, rory_runtime.inspection
+import rory_instrument.cli, rory_runtime.cli, rory_runtime.node.attach, rory_runtime.inspection
 import rory_runtime.bundle, rory_runtime.kill, rory_runtime.supervisor.supervisor
 import rory_runtime.supervisor.embed
 print('ok')

@@ -16,11 +16,12 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from rory_runtime import node_lifecycle, protocol
+from rory_runtime import protocol
 from rory_runtime.log import read_segment
+from rory_runtime.node import lifecycle as node_lifecycle
+from rory_runtime.node.runtime import NodeRuntime, RuntimeEnv
+from rory_runtime.node.state import CheckpointSpec
 from rory_runtime.protocol import Method, Mode
-from rory_runtime.runtime import NodeRuntime, RuntimeEnv
-from rory_runtime.state import CheckpointSpec
 from rory_runtime.supervisor.recovery import readings_first
 
 pytestmark = pytest.mark.ros

@@ -15,11 +15,12 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from rory_runtime import node_parameters, protocol
+from rory_runtime import protocol
 from rory_runtime.log import read_segment
+from rory_runtime.node import parameters as node_parameters
+from rory_runtime.node.runtime import NodeRuntime, RuntimeEnv
+from rory_runtime.node.state import CheckpointSpec
 from rory_runtime.protocol import Method, Mode
-from rory_runtime.runtime import NodeRuntime, RuntimeEnv
-from rory_runtime.state import CheckpointSpec
 from rory_runtime.supervisor.recovery import readings_first
 
 pytestmark = pytest.mark.ros

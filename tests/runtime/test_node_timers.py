@@ -1,4 +1,4 @@
-"""The node's timers as state (node_timers.py): what its code did to them survives holding and
+"""The node's timers as state (node/timers.py): what its code did to them survives holding and
 replay, each goes back on its grid at release, a checkpoint keeps them and a restore makes
 again those made after start-up. Driven with stand-ins of rclpy's timers on a simulated clock.
 """
@@ -16,7 +16,7 @@ from rclpy.node import Node
 from rclpy.time import Time
 from runtime_fakes import FakeTimer
 
-from rory_runtime.node_timers import NodeTimers
+from rory_runtime.node.timers import NodeTimers
 
 S = 1_000_000_000
 

@@ -1,6 +1,6 @@
-"""How a node class gets its runtime (patching.py): nothing patched unsupervised; under the
+"""How a node class gets its runtime (node/patching.py): nothing patched unsupervised; under the
 supervisor the node's own entities go to its runtime and rclpy's own stay rclpy's. And the
-node side's front door (attach.py) still exports what code written against it imports."""
+node side's front door (node/attach.py) still exports what code written against it imports."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ from rclpy.context import Context
 from rclpy.node import Node
 from std_msgs.msg import Int64
 
-from rory_runtime import attach, patching, protocol, runtime, state
+from rory_runtime import protocol
+from rory_runtime.node import attach, patching, runtime, state
 from rory_runtime.protocol import Method, Mode
 
 

@@ -1,5 +1,5 @@
-"""The side thread's decisions (pulse.py): when it beats by itself, when it probes the executor,
-when a checkpoint is due; driven tick by tick with a fake executor and a fake clock."""
+"""The side thread's decisions (node/pulse.py): when it beats by itself, when it probes the
+executor, when a checkpoint is due; driven tick by tick with a fake executor and a fake clock."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node as RclpyNode
 
-from rory_runtime.pulse import PARKED_PROBE_EVERY, CheckpointSchedule, Pulse, executor_parked
+from rory_runtime.node.pulse import PARKED_PROBE_EVERY, CheckpointSchedule, Pulse, executor_parked
 
 SECOND = 1_000_000_000
 

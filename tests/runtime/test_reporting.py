@@ -1,9 +1,9 @@
-"""What the node tells its supervisor (reporting.py): each error once, as an ERROR status."""
+"""What the node tells its supervisor (node/reporting.py): each error once, as an ERROR status."""
 
 from __future__ import annotations
 
+from rory_runtime.node.reporting import Reporter
 from rory_runtime.protocol import CheckpointFailure, ErrorStatus, Status
-from rory_runtime.reporting import Reporter
 
 
 def test_an_error_is_sent_once_and_says_whether_a_checkpoint_was_not_taken() -> None:

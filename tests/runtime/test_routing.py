@@ -1,4 +1,4 @@
-"""The node's input path (routing.py): what is applied, when, in which order, and never twice;
+"""The node's input path (node/routing.py): what is applied, when, in which order, and never twice;
 each topic's phase of the handover (BUFFERED -> LIVE, SHADOW -> HANDOVER -> LIVE).
 
 These drive the runtime's router directly with real CDR bytes; the subscription is a minimal
@@ -24,14 +24,15 @@ from runtime_fakes import (
     shadow,
 )
 
-from rory_runtime import protocol, routing
-from rory_runtime.applier import LiveCallback, Window
+from rory_runtime import protocol
 from rory_runtime.errors import RoryError
-from rory_runtime.event_clock import Reading
 from rory_runtime.log import read_segment
+from rory_runtime.node import routing
+from rory_runtime.node.applier import LiveCallback, Window
+from rory_runtime.node.event_clock import Reading
+from rory_runtime.node.routing import IllegalPhaseChange, Router, TopicPhase, transition
+from rory_runtime.node.runtime import NodeRuntime
 from rory_runtime.protocol import MessageId, Method, Mode, Status, SwitchedStatus
-from rory_runtime.routing import IllegalPhaseChange, Router, TopicPhase, transition
-from rory_runtime.runtime import NodeRuntime
 
 
 @pytest.fixture

@@ -13,9 +13,9 @@ from rclpy.time import Time
 
 from rory_runtime import codec
 from rory_runtime.freshness import Rule
+from rory_runtime.node.runtime import NodeRuntime, RuntimeEnv
+from rory_runtime.node.state import CheckpointSpec
 from rory_runtime.protocol import Method, Mode, RestoredCheckpoint
-from rory_runtime.runtime import NodeRuntime, RuntimeEnv
-from rory_runtime.state import CheckpointSpec
 from rory_runtime.store import Checkpoint, CheckpointStore
 
 

@@ -64,7 +64,7 @@ def test_warm_imports_never_import_a_module_that_decorates_a_node(
     pkg = tmp_path / 'site' / 'decorating_pkg'
     pkg.mkdir(parents=True)
     (pkg / '__init__.py').write_text(
-        'from rory_runtime.attach import checkpointed\n'
+        'from rory_runtime.node.attach import checkpointed\n'
         'from rclpy.node import Node\n'
         '@checkpointed(vars=("x",), manifest="m")\n'
         'class N(Node):\n'

@@ -10,7 +10,7 @@ from collections.abc import Iterator
 import pytest
 
 from rory_runtime.errors import CodecError
-from rory_runtime.state import CheckpointSpec, read_state, write_state
+from rory_runtime.node.state import CheckpointSpec, read_state, write_state
 
 
 class Pid:

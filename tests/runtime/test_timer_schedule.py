@@ -1,9 +1,9 @@
-"""Where a timer goes on after a recovery (timer_schedule.py): on its old grid, a tick that fell
-due while the node was down fired once, never a burst; with a fake clock."""
+"""Where a timer goes on after a recovery (node/timer_schedule.py): on its old grid, a tick that
+fell due while the node was down fired once, never a burst; with a fake clock."""
 
 from __future__ import annotations
 
-from rory_runtime.timer_schedule import Resume, resume
+from rory_runtime.node.timer_schedule import Resume, resume
 
 MS = 1_000_000
 S = 1_000 * MS

@@ -24,9 +24,10 @@ from rclpy.node import Node
 from std_msgs.msg import Int64, UInt8MultiArray
 from std_srvs.srv import Trigger
 
-from rory_runtime import patching, protocol
+from rory_runtime import protocol
+from rory_runtime.node import patching
+from rory_runtime.node.runtime import NodeRuntime
 from rory_runtime.protocol import Method, Mode
-from rory_runtime.runtime import NodeRuntime
 
 pytestmark = pytest.mark.ros
 

@@ -16,8 +16,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .errors import CodecError
-from .freshness import Rule
+from ..errors import CodecError
+from ..freshness import Rule
 
 GLOBAL_PREFIX = 'global:'
 

@@ -27,13 +27,14 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rosbags.interfaces import Qos
 
-from . import event_clock, protocol
-from .errors import LogError
+from .. import protocol
+from ..errors import LogError
+from ..inflight import InFlightSlot
+from ..log import SegmentWriter
+from ..protocol import SEQ_MASK, MessageId
+from ..qos import offered_qos
+from . import event_clock
 from .event_clock import EventClock, Reading
-from .inflight import InFlightSlot
-from .log import SegmentWriter
-from .protocol import SEQ_MASK, MessageId
-from .qos import offered_qos
 
 if TYPE_CHECKING:
     from rclpy.node import Node

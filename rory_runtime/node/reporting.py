@@ -11,8 +11,8 @@ import logging
 import time
 from typing import TYPE_CHECKING
 
-from . import protocol, status_socket
-from .protocol import CheckpointFailure, ErrorStatus, Status
+from .. import protocol, status_socket
+from ..protocol import CheckpointFailure, ErrorStatus, Status
 
 if TYPE_CHECKING:
     from rclpy.node import Node

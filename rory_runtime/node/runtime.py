@@ -44,22 +44,11 @@ from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 from std_msgs.msg import UInt8MultiArray
 
-from . import (
-    codec,
-    freshness,
-    node_lifecycle,
-    node_parameters,
-    protocol,
-    status_socket,
-)
-from .applier import Applier, Window
-from .checkpointer import Checkpointer, node_clock_reading
-from .errors import CheckpointError, CodecError, ProtocolError, RoryError
-from .gating import OutputGate
-from .inflight import InFlightSlot, slot_path
-from .log import SegmentStore, default_typestore
-from .node_timers import now_on
-from .protocol import (
+from .. import codec, freshness, protocol, status_socket
+from ..errors import CheckpointError, CodecError, ProtocolError, RoryError
+from ..inflight import InFlightSlot, slot_path
+from ..log import SegmentStore, default_typestore
+from ..protocol import (
     DEFAULT_CHANNEL,
     ENV_CHANNEL,
     ENV_GATED,
@@ -82,11 +71,17 @@ from .protocol import (
     RestoredCheckpoint,
     SyncedStatus,
 )
+from ..store import Checkpoint, CheckpointStore
+from . import lifecycle as node_lifecycle
+from . import parameters as node_parameters
+from .applier import Applier, Window
+from .checkpointer import Checkpointer, node_clock_reading
+from .gating import OutputGate
 from .pulse import Pulse
 from .reporting import Reporter
 from .routing import Router
 from .state import CheckpointSpec, write_state
-from .store import Checkpoint, CheckpointStore
+from .timers import now_on
 
 _logger = logging.getLogger('rory.runtime')
 

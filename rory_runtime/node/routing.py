@@ -34,12 +34,12 @@ from typing import Any, Final, Protocol, cast
 from rclpy.subscription import Subscription
 from rclpy.type_support import check_for_type_support
 
-from . import protocol
+from .. import protocol
+from ..errors import RoryError
+from ..msgtypes import type_name_of
+from ..protocol import FLAG_RELAY, InputSpec, MessageId, Status, SwitchedStatus
 from .applier import LiveCallback, Window
-from .errors import RoryError
 from .event_clock import Reading
-from .msgtypes import type_name_of
-from .protocol import FLAG_RELAY, InputSpec, MessageId, Status, SwitchedStatus
 
 SWITCH_CONFIRMATIONS = 3
 """Relayed messages that must also arrive live before a topic switches to its live reader."""

@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 from rclpy.node import Node
 
-from .freshness import rules_from
+from ..freshness import rules_from
 from .runtime import NodeRuntime, RuntimeEnv
 from .state import CheckpointSpec
 

@@ -3,7 +3,7 @@ over the node's entities", "Services", "Parameters").
 
 :class:`OutputGate` holds what the node makes besides subscriptions: its publishers, muted
 until the outputs open (at release, or under a release gate when the supervisor says OPEN);
-its timers, held until release, then put back on their grids (node_timers.py); its services
+its timers, held until release, then put back on their grids (timers.py); its services
 and rclpy's parameter-setting services, held until release. Their events (ticks, requests,
 parameter changes from outside) run through the applier (applier.py), written ahead to the
 log; in replay the gate finds the timer, service or parameter setter a logged event names and
@@ -26,11 +26,14 @@ from rclpy.publisher import Publisher
 from rclpy.service import Service
 from rclpy.timer import Timer
 
-from . import event_clock, node_parameters, node_services, protocol
+from .. import protocol
+from ..errors import RoryError
+from . import event_clock
+from . import parameters as node_parameters
+from . import services as node_services
 from .applier import Applier
-from .errors import RoryError
 from .event_clock import Reading
-from .node_timers import NodeTimers
+from .timers import NodeTimers
 
 
 class OutputGate:
@@ -51,7 +54,7 @@ class OutputGate:
         self.outputs_open = False
         self.publishers: list[Publisher] = []
         # The node's timers by creation order (a logged tick names its timer by index), held
-        # until release, then put back on their grids (node_timers.py).
+        # until release, then put back on their grids (timers.py).
         self.timers = NodeTimers(lambda: self.released, error)
         # The user's services by creation order: a logged request names its service by index.
         self.services: list[tuple[Service, Callable[[Any, Any], Any]]] = []

@@ -22,13 +22,16 @@ from typing import Protocol
 
 from rclpy.node import Node
 
-from . import chunks, codec, event_clock, freshness, node_lifecycle, node_parameters
-from .errors import CheckpointError, CodecError, LogError
-from .log import SegmentStore, SegmentWriter
-from .protocol import CheckpointFailure, CheckpointStatus, Method, Status
+from .. import chunks, codec, freshness
+from ..errors import CheckpointError, CodecError, LogError
+from ..log import SegmentStore, SegmentWriter
+from ..protocol import CheckpointFailure, CheckpointStatus, Method, Status
+from ..store import Checkpoint, CheckpointStore
+from ..threads import name_this_thread
+from . import event_clock
+from . import lifecycle as node_lifecycle
+from . import parameters as node_parameters
 from .state import CheckpointSpec, read_state
-from .store import Checkpoint, CheckpointStore
-from .threads import name_this_thread
 
 _logger = logging.getLogger('rory.runtime')
 

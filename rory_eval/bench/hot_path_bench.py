@@ -71,6 +71,12 @@ class _Timer:
     def cancel(self) -> None:
         self.canceled = True
 
+    def reset(self) -> None:
+        self.canceled = False
+
+    def destroy(self) -> None:
+        self.canceled = True
+
 
 def _scan() -> bytes:
     msg = LaserScan()

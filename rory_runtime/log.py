@@ -190,8 +190,8 @@ class _DurableMcapWriter(McapWriter):
         data: bytes | memoryview,
     ) -> None:
         """Write one message record to the OS: one ``writev`` of its head and the data, no
-        copy and no buffered file object (a LaserScan's record cost ~3 us more through them:
-        docs/performance.md, "The write ahead").
+        copy and no buffered file object (what each cost is measured in docs/performance.md,
+        "One writev a record").
 
         Raises:
             struct.error: A time or the sequence does not fit its field; nothing written.

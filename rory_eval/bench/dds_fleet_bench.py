@@ -39,7 +39,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from rory_eval.bench.discovery import measure
+from rory_eval.bench.discovery import measure, remove_left_over, shm_files_of
 from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.dds import fast_rediscovery_env, node_profile_env
 
@@ -115,9 +115,12 @@ def at_rest(extra: dict[str, str], participants: int, settle: float, seconds: fl
                 usage.append(100.0 * (now - then) / wall)
         return usage
     finally:
+        left = shm_files_of({p.pid for p in procs})
         for proc in procs:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+        # Their shared-memory files would slow the next setting down (those of no other process).
+        remove_left_over(left)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -157,8 +160,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f'{name}: {statistics.median(cpu):.3f} % per participant at rest; restart '
                   f'heard after {statistics.median(delays) if delays else float("nan"):.0f} ms '
                   f'median, {max(delays) if delays else float("nan"):.0f} ms worst', flush=True)
-            for leftover in Path('/dev/shm').glob('fastrtps_*'):
-                leftover.unlink(missing_ok=True)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     print()

@@ -42,7 +42,7 @@ from typing import Any
 
 from rory_eval.bench.light_node_bench import alternating, plain_env
 from rory_eval.bench.rest_bench import Threads, per_kind, thread_ns
-from rory_eval.harness.process_usage import read_process
+from rory_eval.harness.process_usage import read_process, tree_pids
 from rory_eval.harness.scenario import Program, prepare, stop_process
 from rory_eval.harness.simrun import exit_on_sigterm
 from rory_runtime.dds import fast_rediscovery_env
@@ -88,20 +88,21 @@ print('end', flush=True)
 '''
 
 
-def _node_pid(root: int, config: str, deadline: float, program: Program) -> int:
-    """The node's process: the root when bare, else the supervisor's child running it."""
+def _node_pid(root: int, config: str, deadline: float, program: Program, *,
+              proc: Path = Path('/proc')) -> int:
+    """The node's process: the root when bare, else the process of the supervisor's tree (root)
+    running it. Not any process running it: another bench's node on the same machine has the
+    same command line."""
     if config in ('bare', 'bare_udp'):
         return root
     while time.monotonic() < deadline:
-        for entry in Path('/proc').iterdir():
-            if not entry.name.isdigit():
-                continue
+        for pid in tree_pids(root, proc=proc):
             try:
-                cmdline = (entry / 'cmdline').read_bytes().replace(b'\0', b' ')
+                cmdline = (proc / str(pid) / 'cmdline').read_bytes().replace(b'\0', b' ')
             except OSError:
                 continue
             if f'out/{program.file}'.encode() in cmdline:
-                return int(entry.name)
+                return pid
         time.sleep(0.1)
     raise RuntimeError(f'{config}: the node never started')
 

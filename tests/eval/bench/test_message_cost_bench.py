@@ -1,8 +1,14 @@
-"""The message cost bench's split by thread (rory_eval/bench/message_cost_bench.py)."""
+"""The message cost bench's split by thread, and which process it measures
+(rory_eval/bench/message_cost_bench.py)."""
 
 from __future__ import annotations
 
-from rory_eval.bench.message_cost_bench import thread_table, thread_us
+import time
+from pathlib import Path
+
+import pytest
+
+from rory_eval.bench.message_cost_bench import PROGRAMS, _node_pid, thread_table, thread_us
 
 
 def test_the_main_thread_is_named_main_and_threads_of_a_kind_add_up() -> None:
@@ -27,3 +33,22 @@ def test_the_table_gives_medians_per_configuration_and_leaves_out_idle_kinds() -
     assert '| rory-io | 0.0 | 2.0 |' in text
     assert 'dds.ev' not in text
     assert text.index('| main') < text.index('| dds.udp') < text.index('| rory-io')
+
+
+def test_the_node_is_the_one_in_the_supervisors_tree_not_anothers_with_its_command(
+        tmp_path: Path) -> None:
+    # pid: (parent, command line); 40 is another bench's node, started earlier (a lower pid).
+    processes = {1: (0, 'init'), 40: (1, 'python out/scan_sink.py'),
+                 100: (1, 'python -m rory_runtime.cli supervise supervise.yaml'),
+                 101: (100, 'rory-zygote'), 102: (101, 'python out/scan_sink.py')}
+    for pid, (parent, command) in processes.items():
+        (tmp_path / str(pid)).mkdir()
+        (tmp_path / str(pid) / 'stat').write_text(f'{pid} (python) S {parent} 1 1 0\n')
+        (tmp_path / str(pid) / 'cmdline').write_bytes(command.replace(' ', '\0').encode())
+    program = PROGRAMS['scan']
+    deadline = time.monotonic() + 5
+    assert _node_pid(100, 'rory', deadline, program, proc=tmp_path) == 102
+    assert _node_pid(100, 'bare', deadline, program, proc=tmp_path) == 100
+    (tmp_path / '102' / 'stat').unlink()  # not started yet: the other bench's is not taken
+    with pytest.raises(RuntimeError, match='restart: the node never started'):
+        _node_pid(100, 'restart', time.monotonic() + 0.3, program, proc=tmp_path)

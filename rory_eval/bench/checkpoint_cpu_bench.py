@@ -32,7 +32,7 @@ import statistics
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -188,9 +188,10 @@ def measure(run: Run, changes: Callable[[], None], count: int) -> tuple[list[flo
     return times, locked
 
 
-def main() -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """Measure old and new at each percentage; print a Markdown table."""
-    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m rory_eval.bench.checkpoint_cpu_bench',
+                                     description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoints', type=int, default=25)
     parser.add_argument('--changed', type=float, nargs='+', default=[0.0, 1.0, 10.0, 100.0],
                         help='percent of the chunks changed between two checkpoints')
@@ -199,7 +200,7 @@ def main() -> int:
                         help='chunk sizes to compare (KiB)')
     parser.add_argument('--no-old', action='store_true', help='skip the whole-file path')
     parser.add_argument('--dir', type=Path, default=None)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     base = Path(tempfile.mkdtemp(prefix='ckpt-cpu-', dir=args.dir))
     patterns: list[float | None] = [*args.changed, *([None] if args.room else [])]
     header = ['path', *(f'{p:g} % changed' if p is not None else 'a room' for p in patterns)]

@@ -1,10 +1,12 @@
-"""checkpoint_cpu_bench: the changes it makes, and one short run of both paths."""
+"""checkpoint_cpu_bench: the changes it makes, one short run of both paths, and the whole
+bench once."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from rory_eval.bench import checkpoint_cpu_bench as bench
 from rory_runtime import chunks
@@ -54,3 +56,15 @@ def test_both_paths_checkpoint_the_state(tmp_path: Path) -> None:
     old_times, _ = bench.measure(bench.old_checkpoint(tmp_path / 'old', node), lambda: None, 1)
     assert len(old_times) == 1
     assert len(list((tmp_path / 'old' / 'grid_slam' / 'checkpoints').glob('*.ckpt'))) == 2
+
+
+def test_the_bench_runs_both_paths_at_each_pattern_and_prints_its_tables(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Its node is a stand-in (_Node): the runtime's Checkpointer must still take it whole.
+    assert bench.main(['--checkpoints', '1', '--changed', '1', '--room',
+                       '--dir', str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert out.count('| path | 1 % changed | a room |') == 2
+    assert out.count('| old | ') == 2
+    assert out.count(f'| chunks of {chunks.CHUNK_BYTES // 1024} KiB | ') == 2
+    assert list(tmp_path.iterdir()) == []  # its folder removed

@@ -7,7 +7,8 @@ counted (its ticks must stay on their grid), one tuned by a parameter at run tim
 through a service, and a lifecycle node managed through ``~/change_state`` (those last three
 driven by ``corpus/operator.py``, acting when it sees given numbers go by). Each node runs once
 without a crash (its reference) and once per kill, with ``fast`` replay, SIGKILLed a random time
-into its numbers (1..200 at 50 Hz).
+into its numbers (1..200 at 50 Hz; 1..300 for the three an operator drives,
+:data:`OPERATED_COUNT`).
 
 A crashed run is judged against its reference (:data:`NODES`, ``judge``):
 
@@ -47,6 +48,13 @@ from rory_eval.harness.simrun import exit_on_sigterm
 
 CORPUS = Path(__file__).resolve().parents[2] / 'tests' / 'integration' / 'corpus'
 COUNT = 200  # 4 s at 50 Hz
+OPERATED_COUNT = 300
+"""The stream of a node an operator drives (6 s at 50 Hz). Its steps wait for the node's first
+checkpoint (corpus/operator.py), and a kill just before that checkpoint puts it a checkpoint
+interval later (a recovered node's schedule starts at its release): 2 s after the release that
+follows the crash, ~4.2 s into the numbers, after which the steps still need their numbers. In
+200 numbers the last step could fall after the last number (a run of 2026-11-28 killed at 1.42
+s lost its lifecycle node's last transition that way)."""
 # What a message's clock reading or a tick may lag in a recovered run beyond the recovery's
 # own time (crash detected -> released): a tick period and the handover. A replay on live time
 # shows the time since the checkpoint on top of the recovery.
@@ -57,9 +65,9 @@ State = Any  # the node's last /state, decoded from JSON
 Judge = Callable[[State | None, State, int], list[str]]
 
 
-def _numbers(state: State) -> list[str]:
+def _numbers(state: State, expected: int = COUNT) -> list[str]:
     count = state.get('count')
-    return [] if count == COUNT else [f'count {count}, expected {COUNT}']
+    return [] if count == expected else [f'count {count}, expected {expected}']
 
 
 def same_state(reference: State | None, crashed: State, _lag: int) -> list[str]:
@@ -147,12 +155,12 @@ def sampler(_reference: State | None, crashed: State, _lag: int) -> list[str]:
     return sampler_grid(crashed)
 
 
-def _runs(field: str, total: str) -> Judge:
-    """A node counting under a setting changed from outside: the settings in the order the
-    reference had them, and the total those runs imply."""
+def _runs(field: str, total: str, count: int = OPERATED_COUNT) -> Judge:
+    """A node counting under a setting changed from outside (``count`` numbers): the settings
+    in the order the reference had them, and the total those runs imply."""
 
     def judge(reference: State | None, crashed: State, _lag: int) -> list[str]:
-        problems = _numbers(crashed)
+        problems = _numbers(crashed, count)
         settings = [setting for setting, _ in crashed[field]]
         if reference is not None and settings != [s for s, _ in reference[field]]:
             problems.append(f'{field} {crashed[field]}, the no-crash run had {reference[field]}')
@@ -161,7 +169,7 @@ def _runs(field: str, total: str) -> Judge:
             for _ in range(how_many):
                 n += 1
                 implied += setting * n
-        if crashed[total] != implied or n != COUNT:
+        if crashed[total] != implied or n != count:
             problems.append(f'{total} {crashed[total]} is not what its {field} imply')
         return problems
 
@@ -176,6 +184,7 @@ class CorpusNode:
     name: str
     judge: Judge
     operator: tuple[str, ...] = ()  # corpus/operator.py's arguments, if it needs an operator
+    count: int = COUNT  # numbers in its stream
 
     def program(self) -> Program:
         return Program(CORPUS, CORPUS / 'keyvars.yaml', self.file, '/state', self.name)
@@ -195,11 +204,12 @@ NODES: tuple[CorpusNode, ...] = (
     CorpusNode('timer_mapper.py', 'timer_mapper', timer_mapper),
     CorpusNode('sampler.py', 'sampler', sampler),
     CorpusNode('gain_controller.py', 'gain_controller', _runs('gains', 'total'),
-               ('gain', '20=2.0', 'c10=3.0')),
+               ('gain', '20=2.0', 'c10=3.0'), OPERATED_COUNT),
     CorpusNode('mode_switch.py', 'mode_switch', _runs('runs', 'total'),
-               ('fast', '20=1', 'c10=0')),
+               ('fast', '20=1', 'c10=0'), OPERATED_COUNT),
     CorpusNode('lifecycle_counter.py', 'lifecycle_counter', _runs('runs', 'total'),
-               ('lifecycle', '0=configure', '30=activate', 'c5=deactivate', 'c15=activate')),
+               ('lifecycle', '0=configure', '30=activate', 'c5=deactivate', 'c15=activate'),
+               OPERATED_COUNT),
 )
 
 
@@ -213,7 +223,7 @@ def run_node(node: CorpusNode, kills: tuple[Kill, ...], workdir: Path,
                 [sys.executable, str(CORPUS / 'operator.py'), *node.operator],
                 scenario_env(domain), workdir, workdir / 'operator.log'))
         # fast whatever keyvars.yaml says (one corpus node asks for paced, to test that)
-        return run('rory', kills, workdir, domain_id=domain, count=COUNT, interval=None,
+        return run('rory', kills, workdir, domain_id=domain, count=node.count, interval=None,
                    pace='fast', program=node.program(),
                    other_readers=1 if node.operator else 0)
 
